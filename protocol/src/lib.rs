@@ -1,0 +1,468 @@
+//! Every message on the voxlight wire, and the scene file format (which uses the same field
+//! names). Types only: no logic beyond serde attributes and defaults.
+//!
+//! Text messages are JSON objects tagged by `"type"`. Frames are binary messages: a 4-byte
+//! little-endian length `N`, then `N` bytes of UTF-8 JSON [`FrameMeta`], then the encoded image.
+//! `docs/protocol.md` documents all of it for client authors.
+
+use serde::{Deserialize, Serialize};
+
+/// Version a client announces in `hello`; the server refuses others with `protocol_version`.
+pub const PROTOCOL_VERSION: u32 = 1;
+
+/// Largest text message the server accepts, in bytes.
+pub const MAX_MESSAGE_BYTES: usize = 64 * 1024;
+
+/// Largest viewport edge in pixels.
+pub const MAX_VIEWPORT_EDGE: u32 = 4096;
+
+/// Most points a transfer function may have.
+pub const MAX_TF_POINTS: usize = 256;
+
+/// Most lights a scene may have.
+pub const MAX_LIGHTS: usize = 16;
+
+/// Image size in pixels.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Viewport {
+    pub width: u32,
+    pub height: u32,
+}
+
+impl Default for Viewport {
+    fn default() -> Self {
+        Self {
+            width: 512,
+            height: 512,
+        }
+    }
+}
+
+/// Pinhole camera. `right = normalize(forward × up)`, image row 0 is the top.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Camera {
+    pub eye: [f32; 3],
+    pub target: [f32; 3],
+    pub up: [f32; 3],
+    /// Vertical field of view in degrees.
+    pub fov_deg: f32,
+}
+
+impl Default for Camera {
+    /// Looks at the volume from world −y with +z up: for a CT in patient (LPS) coordinates this
+    /// is an anterior view, head up.
+    fn default() -> Self {
+        Self {
+            eye: [0.0, -2.4, 0.0],
+            target: [0.0, 0.0, 0.0],
+            up: [0.0, 0.0, 1.0],
+            fov_deg: 30.0,
+        }
+    }
+}
+
+/// One control point of a transfer function.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct TfPoint {
+    /// Normalized data value in [0, 1].
+    pub value: f32,
+    /// Albedo, linear RGB in [0, 1].
+    pub color: [f32; 3],
+    /// Opacity in [0, 1]; extinction is `density_scale · opacity` per world unit.
+    pub opacity: f32,
+}
+
+/// Piecewise linear between points (sorted by value), constant beyond the first and last.
+/// No points means fully transparent.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct TransferFunction {
+    pub points: Vec<TfPoint>,
+}
+
+/// A light of the physical model (DESIGN.md).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum Light {
+    /// Parallel light. `direction` is the direction the light travels (from the light into the
+    /// scene); `irradiance` is measured on a plane facing the light.
+    Directional {
+        direction: [f32; 3],
+        irradiance: [f32; 3],
+    },
+    /// Isotropic point light with radiant `intensity`: irradiance I/d² at distance d.
+    Point {
+        position: [f32; 3],
+        intensity: [f32; 3],
+    },
+    /// Uniform radiance from every direction; also the background.
+    Environment { radiance: [f32; 3] },
+}
+
+/// Default lighting: a key light from the upper front left plus a dim environment.
+pub fn default_lights() -> Vec<Light> {
+    vec![
+        Light::Directional {
+            direction: [0.4, 0.6, -0.7],
+            irradiance: [2.5, 2.4, 2.2],
+        },
+        Light::Environment {
+            radiance: [0.25, 0.27, 0.3],
+        },
+    ]
+}
+
+/// Scene parameters shared by every technique.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct RenderParams {
+    /// Extinction per world unit at opacity 1.
+    pub density_scale: f32,
+    /// Henyey-Greenstein asymmetry in (−1, 1); 0 is isotropic.
+    pub g: f32,
+    /// Display exposure multiplier applied before the sRGB transfer (display only).
+    pub exposure: f32,
+}
+
+impl Default for RenderParams {
+    fn default() -> Self {
+        Self {
+            density_scale: 60.0,
+            g: 0.0,
+            exposure: 1.0,
+        }
+    }
+}
+
+/// Messages from a client to the server.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum ClientMessage {
+    /// First message of a connection.
+    Hello {
+        protocol: u32,
+        /// Join an existing session instead of starting a new one.
+        #[serde(default)]
+        session: Option<String>,
+        #[serde(default)]
+        token: Option<String>,
+        #[serde(default)]
+        viewport: Option<Viewport>,
+        /// Dataset to open; the server's default when absent.
+        #[serde(default)]
+        dataset: Option<String>,
+        #[serde(default)]
+        technique: Option<String>,
+    },
+    /// Open another dataset (by name, as listed by `/api/datasets`).
+    Dataset { name: String },
+    Camera(Camera),
+    Tf(TransferFunction),
+    /// Replace all lights.
+    Lights { lights: Vec<Light> },
+    Technique { name: String },
+    Viewport(Viewport),
+    /// Change any of the render parameters; absent fields keep their value.
+    Params {
+        #[serde(default)]
+        density_scale: Option<f32>,
+        #[serde(default)]
+        g: Option<f32>,
+        #[serde(default)]
+        exposure: Option<f32>,
+    },
+    /// Streaming quality for this viewer.
+    Quality {
+        /// JPEG quality (1–100) for frames sent while the picture changes.
+        #[serde(default)]
+        jpeg_quality: Option<u8>,
+        /// Progressive iterations after which the picture counts as converged.
+        #[serde(default)]
+        iterations: Option<u32>,
+    },
+}
+
+/// What the server knows about a dataset.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DatasetInfo {
+    pub name: String,
+    /// `dicom`, `nrrd`, `nifti`, `vti` or `phantom`.
+    pub kind: String,
+    /// Present once the dataset has been loaded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub details: Option<DatasetDetails>,
+}
+
+/// Properties known once a dataset is loaded.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DatasetDetails {
+    pub dims: [u32; 3],
+    /// Voxel spacing in the dataset's units (mm for medical images).
+    pub spacing: [f32; 3],
+    /// Original value range: normalized value v maps to `value_min + v·(value_max − value_min)`.
+    pub value_min: f64,
+    pub value_max: f64,
+    /// `HU` for CT, empty when unknown.
+    pub units: String,
+    pub modality: String,
+    pub format: String,
+    /// World-space box size (longest side 1).
+    pub world_extent: [f32; 3],
+    /// 256 bins over the normalized value.
+    pub histogram: Vec<u32>,
+    pub warnings: Vec<String>,
+}
+
+/// A technique the server offers.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TechniqueInfo {
+    pub name: String,
+    pub description: String,
+}
+
+/// The full editable state of a session, as sent to a (late) joiner.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SessionState {
+    pub dataset: String,
+    pub technique: String,
+    pub camera: Camera,
+    pub tf: TransferFunction,
+    pub lights: Vec<Light>,
+    pub params: RenderParams,
+    pub viewport: Viewport,
+    pub iterations: u32,
+    pub jpeg_quality: u8,
+}
+
+/// Codes in `error` messages.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ErrorCode {
+    /// Not JSON, or not an object with a known `type`.
+    BadMessage,
+    /// A field is out of range or inconsistent.
+    BadValue,
+    /// The message is larger than [`MAX_MESSAGE_BYTES`].
+    TooLarge,
+    /// A message other than `hello` came first, or `hello` came twice.
+    NotReady,
+    /// The client speaks another protocol version.
+    ProtocolVersion,
+    UnknownDataset,
+    UnknownTechnique,
+    /// The dataset exists but could not be read.
+    LoadFailed,
+    /// The GPU cannot hold what was asked for.
+    GpuMemory,
+    /// The GPU failed or was lost.
+    Gpu,
+    Internal,
+}
+
+/// Messages from the server to a client.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum ServerMessage {
+    Welcome {
+        protocol: u32,
+        session: String,
+        server_version: String,
+        /// The GPU adapter that renders, e.g. `llvmpipe (LLVM 15.0.6, 256 bits)`.
+        adapter: String,
+        dataset: DatasetInfo,
+        techniques: Vec<TechniqueInfo>,
+        state: SessionState,
+    },
+    /// The session switched datasets (after a `dataset` message).
+    DatasetLoaded {
+        dataset: DatasetInfo,
+        state: SessionState,
+    },
+    /// Progress of the current picture, sent with frames at a modest rate.
+    Stats(Stats),
+    Error {
+        code: ErrorCode,
+        message: String,
+    },
+    /// The server is going away.
+    Bye { reason: String },
+}
+
+/// Progress and cost of the current picture.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct Stats {
+    pub technique: String,
+    pub iteration: u32,
+    pub target_iterations: u32,
+    pub converged: bool,
+    /// GPU milliseconds of the last step (timestamp queries where available, else wall time).
+    pub gpu_ms: f32,
+    /// Per-session GPU memory in bytes.
+    pub memory_bytes: u64,
+    /// Frames sent per second to this viewer over the last second.
+    pub fps: f32,
+}
+
+/// Image encodings of frames.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FrameFormat {
+    Jpeg,
+    Png,
+}
+
+/// JSON header of a binary frame message.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FrameMeta {
+    /// Increases by one per frame sent on this connection.
+    pub seq: u64,
+    pub format: FrameFormat,
+    pub width: u32,
+    pub height: u32,
+    pub technique: String,
+    /// Progressive iterations accumulated in this picture.
+    pub iteration: u32,
+    pub target_iterations: u32,
+    /// No further iterations will be rendered for this state.
+    pub converged: bool,
+    /// The image is lossless (PNG of the exact framebuffer).
+    pub lossless: bool,
+    /// JPEG quality when lossy.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub quality: Option<u8>,
+    /// Counter of scene edits applied to this picture; a client can match its own edits.
+    pub scene_version: u64,
+    pub render_ms: f32,
+    pub encode_ms: f32,
+}
+
+/// A scene file for `voxlight render` (DESIGN.md "Fixed names"): the protocol's field names.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scene {
+    /// `phantom:NAME` or a path to a volume file or DICOM folder.
+    pub dataset: String,
+    #[serde(default)]
+    pub camera: Camera,
+    /// Absent: the server's default for the dataset.
+    #[serde(default)]
+    pub tf: Option<TransferFunction>,
+    #[serde(default = "default_lights")]
+    pub lights: Vec<Light>,
+    #[serde(default = "default_technique")]
+    pub technique: String,
+    #[serde(default = "default_density_scale")]
+    pub density_scale: f32,
+    #[serde(default)]
+    pub g: f32,
+    #[serde(default = "default_exposure")]
+    pub exposure: f32,
+    #[serde(default = "default_width")]
+    pub width: u32,
+    #[serde(default = "default_width")]
+    pub height: u32,
+    /// Progressive iterations (samples per pixel) to accumulate.
+    #[serde(default = "default_iterations")]
+    pub iterations: u32,
+    /// Seed of the counter-based random numbers.
+    #[serde(default)]
+    pub seed: u32,
+}
+
+fn default_technique() -> String {
+    "raymarch".to_owned()
+}
+fn default_density_scale() -> f32 {
+    RenderParams::default().density_scale
+}
+fn default_exposure() -> f32 {
+    1.0
+}
+fn default_width() -> u32 {
+    512
+}
+fn default_iterations() -> u32 {
+    64
+}
+
+/// Splits a binary frame message into its metadata and image bytes.
+pub fn split_frame(bytes: &[u8]) -> Option<(FrameMeta, &[u8])> {
+    let len = u32::from_le_bytes(bytes.get(..4)?.try_into().ok()?) as usize;
+    let meta = bytes.get(4..4usize.checked_add(len)?)?;
+    let meta = serde_json::from_slice(meta).ok()?;
+    Some((meta, &bytes[4 + len..]))
+}
+
+/// Builds a binary frame message from metadata and image bytes.
+pub fn join_frame(meta: &FrameMeta, image: &[u8]) -> Vec<u8> {
+    let json = serde_json::to_vec(meta).unwrap_or_default();
+    let mut out = Vec::with_capacity(4 + json.len() + image.len());
+    out.extend_from_slice(&(json.len() as u32).to_le_bytes());
+    out.extend_from_slice(&json);
+    out.extend_from_slice(image);
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn design_core_shapes_parse() {
+        let hello: ClientMessage = serde_json::from_str(
+            r#"{"type":"hello","protocol":1,"viewport":{"width":64,"height":48},"dataset":"phantom:sphere"}"#,
+        )
+        .unwrap();
+        assert!(matches!(hello, ClientMessage::Hello { protocol: 1, viewport: Some(Viewport { width: 64, height: 48 }), .. }));
+        let cam: ClientMessage = serde_json::from_str(
+            r#"{"type":"camera","eye":[0,0,3],"target":[0,0,0],"up":[0,1,0],"fov_deg":40}"#,
+        )
+        .unwrap();
+        assert!(matches!(cam, ClientMessage::Camera(Camera { fov_deg: 40.0, .. })));
+        let tf: ClientMessage = serde_json::from_str(
+            r#"{"type":"tf","points":[{"value":0.5,"color":[1,0,0],"opacity":0.2}]}"#,
+        )
+        .unwrap();
+        assert!(matches!(tf, ClientMessage::Tf(TransferFunction { ref points }) if points.len() == 1));
+        let vp: ClientMessage =
+            serde_json::from_str(r#"{"type":"viewport","width":10,"height":20}"#).unwrap();
+        assert_eq!(vp, ClientMessage::Viewport(Viewport { width: 10, height: 20 }));
+        let lights: ClientMessage = serde_json::from_str(
+            r#"{"type":"lights","lights":[{"kind":"environment","radiance":[1,1,1]},{"kind":"point","position":[0,0,2],"intensity":[3,3,3]}]}"#,
+        )
+        .unwrap();
+        assert!(matches!(lights, ClientMessage::Lights { ref lights } if lights.len() == 2));
+    }
+
+    #[test]
+    fn frame_round_trip() {
+        let meta = FrameMeta {
+            seq: 7,
+            format: FrameFormat::Png,
+            width: 2,
+            height: 3,
+            technique: "raymarch".into(),
+            iteration: 4,
+            target_iterations: 8,
+            converged: false,
+            lossless: true,
+            quality: None,
+            scene_version: 1,
+            render_ms: 1.0,
+            encode_ms: 2.0,
+        };
+        let bytes = join_frame(&meta, b"image");
+        let (back, image) = split_frame(&bytes).unwrap();
+        assert_eq!(back, meta);
+        assert_eq!(image, b"image");
+        assert!(split_frame(&bytes[..3]).is_none());
+        assert!(split_frame(&[255, 255, 255, 255, b'{']).is_none());
+    }
+
+    #[test]
+    fn scene_defaults_and_unknown_fields() {
+        let scene: Scene = serde_json::from_str(r#"{"dataset":"phantom:sphere"}"#).unwrap();
+        assert_eq!(scene.technique, "raymarch");
+        assert_eq!(scene.lights, default_lights());
+        assert!(serde_json::from_str::<Scene>(r#"{"dataset":"x","colour":1}"#).is_err());
+    }
+}

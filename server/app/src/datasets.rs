@@ -1,0 +1,223 @@
+//! The datasets a server offers: built-in phantoms plus the volumes found in `--data DIR`.
+//! Clients name datasets; they never see server paths.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, Weak};
+
+use voxlight_protocol::{DatasetDetails, DatasetInfo, TfPoint, TransferFunction};
+use voxlight_volumes::{DatasetEntry, Volume, VolumeError};
+
+/// Edge length of the built-in phantoms served to clients.
+pub const PHANTOM_SIZE: u32 = 128;
+
+/// The dataset opened when a client names none.
+pub const DEFAULT_DATASET: &str = "phantom:cornell";
+
+#[derive(Debug, thiserror::Error)]
+pub enum DatasetError {
+    #[error("unknown dataset `{0}`")]
+    Unknown(String),
+    #[error("dataset `{name}` could not be loaded: {source}")]
+    Load { name: String, source: VolumeError },
+    #[error("data folder {0} does not exist or is not a folder")]
+    NoDataDir(PathBuf),
+}
+
+struct Entry {
+    info: DatasetInfo,
+    /// None for phantoms.
+    path: Option<PathBuf>,
+}
+
+/// Every dataset by name, with loaded volumes shared while anyone uses them.
+pub struct Catalog {
+    entries: Vec<Entry>,
+    loaded: Mutex<HashMap<String, Weak<Volume>>>,
+    details: Mutex<HashMap<String, DatasetDetails>>,
+}
+
+impl Catalog {
+    /// The phantoms plus every volume under `data_dir`.
+    pub fn new(data_dir: Option<&Path>) -> Result<Self, DatasetError> {
+        let mut entries: Vec<Entry> = voxlight_volumes::phantom_names()
+            .iter()
+            .map(|name| Entry {
+                info: DatasetInfo {
+                    name: format!("phantom:{name}"),
+                    kind: "phantom".into(),
+                    details: None,
+                },
+                path: None,
+            })
+            .collect();
+        if let Some(dir) = data_dir {
+            if !dir.is_dir() {
+                return Err(DatasetError::NoDataDir(dir.to_owned()));
+            }
+            let found = voxlight_volumes::scan_catalog(dir).map_err(|source| DatasetError::Load {
+                name: dir.display().to_string(),
+                source,
+            })?;
+            for DatasetEntry { name, path, kind } in found {
+                entries.push(Entry {
+                    info: DatasetInfo { name, kind, details: None },
+                    path: Some(path),
+                });
+            }
+        }
+        Ok(Self {
+            entries,
+            loaded: Mutex::new(HashMap::new()),
+            details: Mutex::new(HashMap::new()),
+        })
+    }
+
+    pub fn contains(&self, name: &str) -> bool {
+        self.entries.iter().any(|e| e.info.name == name)
+    }
+
+    /// Every dataset, with details for those loaded so far.
+    pub fn list(&self) -> Vec<DatasetInfo> {
+        self.entries.iter().filter_map(|e| self.info(&e.info.name)).collect()
+    }
+
+    pub fn info(&self, name: &str) -> Option<DatasetInfo> {
+        let entry = self.entries.iter().find(|e| e.info.name == name)?;
+        let mut info = entry.info.clone();
+        info.details = self.details.lock().ok().and_then(|d| d.get(name).cloned());
+        Some(info)
+    }
+
+    /// Loads (or shares the already loaded) volume. Blocking: call from `spawn_blocking`.
+    pub fn load(&self, name: &str) -> Result<Arc<Volume>, DatasetError> {
+        let entry = self
+            .entries
+            .iter()
+            .find(|e| e.info.name == name)
+            .ok_or_else(|| DatasetError::Unknown(name.to_owned()))?;
+        if let Some(volume) = self.loaded.lock().ok().and_then(|l| l.get(name).and_then(Weak::upgrade)) {
+            return Ok(volume);
+        }
+        let started = std::time::Instant::now();
+        let result = match &entry.path {
+            Some(path) => voxlight_volumes::load(path),
+            None => voxlight_volumes::phantom(name.trim_start_matches("phantom:"), PHANTOM_SIZE),
+        };
+        let mut volume = result.map_err(|source| DatasetError::Load {
+            name: name.to_owned(),
+            source,
+        })?;
+        volume.name = name.to_owned();
+        tracing::info!(
+            dataset = name,
+            dims = ?volume.dims,
+            ms = started.elapsed().as_millis() as u64,
+            warnings = volume.warnings.len(),
+            "dataset loaded"
+        );
+        let volume = Arc::new(volume);
+        if let Ok(mut details) = self.details.lock() {
+            details.insert(name.to_owned(), details_of(&volume));
+        }
+        if let Ok(mut loaded) = self.loaded.lock() {
+            loaded.insert(name.to_owned(), Arc::downgrade(&volume));
+        }
+        Ok(volume)
+    }
+}
+
+pub fn details_of(volume: &Volume) -> DatasetDetails {
+    DatasetDetails {
+        dims: volume.dims,
+        spacing: volume.spacing,
+        value_min: volume.value_min,
+        value_max: volume.value_max,
+        units: volume.units.clone(),
+        modality: volume.modality.clone(),
+        format: volume.format.clone(),
+        world_extent: volume.world_extent(),
+        histogram: volume.histogram.clone(),
+        warnings: volume.warnings.clone(),
+    }
+}
+
+fn point(value: f64, color: [f32; 3], opacity: f32) -> TfPoint {
+    TfPoint {
+        value: value.clamp(0.0, 1.0) as f32,
+        color,
+        opacity,
+    }
+}
+
+/// A transfer function that shows something sensible for a dataset before anyone edits it.
+pub fn default_tf(volume: &Volume) -> TransferFunction {
+    let range = (volume.value_max - volume.value_min).max(f64::EPSILON);
+    let norm = |raw: f64| (raw - volume.value_min) / range;
+    if volume.units == "HU" {
+        // Soft tissue faint and reddish, bone dense and ivory.
+        let points = vec![
+            point(norm(-200.0), [0.8, 0.5, 0.4], 0.0),
+            point(norm(0.0), [0.85, 0.45, 0.38], 0.012),
+            point(norm(150.0), [0.9, 0.6, 0.5], 0.03),
+            point(norm(300.0), [0.95, 0.9, 0.8], 0.35),
+            point(norm(1200.0), [1.0, 0.97, 0.9], 1.0),
+        ];
+        return TransferFunction { points };
+    }
+    if volume.name == "phantom:cornell" {
+        return cornell_tf();
+    }
+    // Generic: ramp over the upper half of the non-background values.
+    let hist = &volume.histogram;
+    let background = hist.iter().take(13).map(|&c| c as u64).sum::<u64>();
+    let total: u64 = hist.iter().map(|&c| c as u64).sum();
+    let foreground = total - background;
+    let mut seen = 0u64;
+    let mut median_bin = 128;
+    for (bin, &count) in hist.iter().enumerate().skip(13) {
+        seen += count as u64;
+        if seen * 2 >= foreground {
+            median_bin = bin;
+            break;
+        }
+    }
+    let start = median_bin as f64 / 256.0 * 0.8;
+    TransferFunction {
+        points: vec![
+            point(start, [0.9, 0.8, 0.7], 0.0),
+            point(1.0, [1.0, 0.95, 0.9], 0.8),
+        ],
+    }
+}
+
+/// Colours the Cornell phantom's materials like Fig. 4 of the historygram paper.
+pub fn cornell_tf() -> TransferFunction {
+    let mut points = Vec::new();
+    for (name, value) in voxlight_volumes::CORNELL_MATERIALS {
+        let name = name.to_ascii_lowercase();
+        let (color, opacity) = if name.contains("red") || name.contains("left") {
+            ([0.85, 0.1, 0.08], 1.0)
+        } else if name.contains("green") || name.contains("right") {
+            ([0.1, 0.75, 0.12], 1.0)
+        } else if name.contains("medium") || name.contains("fog") || name.contains("air") {
+            ([0.9, 0.9, 0.9], 0.02)
+        } else if name.contains("empty") || name.contains("vacuum") {
+            ([0.0, 0.0, 0.0], 0.0)
+        } else {
+            ([0.85, 0.85, 0.85], 1.0)
+        };
+        let v = *value as f64;
+        // A narrow plateau per material so trilinear blends between materials stay distinct.
+        points.push(point(v - 0.03, color, opacity));
+        points.push(point(v + 0.03, color, opacity));
+    }
+    points.sort_by(|a, b| a.value.total_cmp(&b.value));
+    if let Some(first) = points.first().copied() {
+        if first.value > 0.0 {
+            points.insert(0, point(0.0, [0.0; 3], 0.0));
+            points.insert(1, TfPoint { opacity: 0.0, ..first });
+        }
+    }
+    TransferFunction { points }
+}

@@ -1,0 +1,98 @@
+//! The voxlight server: axum routes, sessions, streaming and frame encoding. GPU work runs on
+//! the render thread (`render_service`); the async side never blocks on the GPU.
+
+pub mod bench;
+pub mod datasets;
+pub mod encode;
+pub mod offline;
+pub mod render_service;
+pub mod routes;
+pub mod session;
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use tokio::net::TcpListener;
+use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
+use voxlight_engine::Engine;
+use voxlight_protocol::TechniqueInfo;
+
+pub use routes::app;
+
+use crate::datasets::Catalog;
+use crate::render_service::RenderHandle;
+
+/// Shared by every request and session.
+pub struct AppState {
+    pub catalog: Arc<Catalog>,
+    pub render: RenderHandle,
+    pub techniques: Vec<TechniqueInfo>,
+    pub adapter: String,
+    pub software_renderer: bool,
+    pub default_dataset: String,
+    pub shutdown: CancellationToken,
+    pub tracker: TaskTracker,
+}
+
+/// What `serve` needs besides a listener.
+#[derive(Debug, Clone, Default)]
+pub struct ServerConfig {
+    pub data_dir: Option<PathBuf>,
+    /// Dataset for clients that name none; `phantom:cornell` when unset.
+    pub default_dataset: Option<String>,
+}
+
+/// A started server core: the state for `app`, plus the render thread to join at the end.
+pub struct Server {
+    pub state: Arc<AppState>,
+    render_thread: std::thread::JoinHandle<()>,
+}
+
+impl Server {
+    /// Opens the GPU, scans the data folder and starts the render thread.
+    pub fn start(config: &ServerConfig, engine: Engine, shutdown: CancellationToken) -> anyhow::Result<Self> {
+        let catalog = Arc::new(Catalog::new(config.data_dir.as_deref())?);
+        let default_dataset = config
+            .default_dataset
+            .clone()
+            .unwrap_or_else(|| datasets::DEFAULT_DATASET.to_owned());
+        if !catalog.contains(&default_dataset) {
+            anyhow::bail!("default dataset `{default_dataset}` is not in the catalog");
+        }
+        let techniques = engine.techniques();
+        let adapter = engine.gpu.adapter_name();
+        let software_renderer = engine.gpu.is_software();
+        if software_renderer {
+            tracing::warn!(%adapter, "rendering on a software adapter (CPU): expect low frame rates");
+        }
+        let (render, render_thread) = render_service::spawn(Arc::new(engine))?;
+        let state = Arc::new(AppState {
+            catalog,
+            render,
+            techniques,
+            adapter,
+            software_renderer,
+            default_dataset,
+            shutdown,
+            tracker: TaskTracker::new(),
+        });
+        Ok(Self { state, render_thread })
+    }
+
+    /// Serves until `shutdown` is cancelled, then drains sessions and stops the render thread.
+    pub async fn run(self, listener: TcpListener) -> std::io::Result<()> {
+        let Server { state, render_thread } = self;
+        let shutdown = state.shutdown.clone();
+        let tracker = state.tracker.clone();
+        let router = app(state.clone());
+        let serve = axum::serve(listener, router).with_graceful_shutdown(async move { shutdown.cancelled().await });
+        let result = serve.await;
+        tracker.close();
+        tracker.wait().await;
+        let _ = state.render.send(render_service::Command::Stop).await;
+        let _ = tokio::task::spawn_blocking(move || render_thread.join()).await;
+        tracing::info!("server stopped");
+        result
+    }
+}

@@ -1,0 +1,140 @@
+//! The `voxlight` binary: `serve`, `render` and `bench`.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::{Parser, Subcommand};
+use tokio_util::sync::CancellationToken;
+use voxlight_server::{Server, ServerConfig, bench, offline};
+
+#[derive(Parser)]
+#[command(name = "voxlight", version, about = "Remote volume rendering with global illumination")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Serve the web viewer, /ws, /healthz and /api/datasets.
+    Serve {
+        #[arg(long, default_value = "127.0.0.1:8080")]
+        listen: SocketAddr,
+        /// Folder of volumes (DICOM series folders, .nrrd/.nhdr, .nii/.nii.gz, .vti).
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// Dataset opened when a client names none (default: phantom:cornell).
+        #[arg(long)]
+        default_dataset: Option<String>,
+    },
+    /// Render a scene file to a PNG (and optionally a PFM of linear radiance).
+    Render {
+        #[arg(long)]
+        scene: PathBuf,
+        #[arg(long)]
+        out: PathBuf,
+        #[arg(long)]
+        pfm: Option<PathBuf>,
+    },
+    /// Run a benchmark (`raymarch`).
+    Bench {
+        name: String,
+        /// Print one JSON object on the last line.
+        #[arg(long)]
+        json: bool,
+        /// Data folder (default: ../shared/data when found).
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// Image edges to measure.
+        #[arg(long, value_delimiter = ',', default_value = "512,1024")]
+        sizes: Vec<u32>,
+        /// Timed iterations per size.
+        #[arg(long, default_value_t = 8)]
+        iterations: u32,
+    },
+}
+
+fn main() -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| "info,wgpu_core=warn,wgpu_hal=warn,naga=warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    match Cli::parse().command {
+        Command::Serve {
+            listen,
+            data,
+            default_dataset,
+        } => serve(listen, ServerConfig { data_dir: data, default_dataset }),
+        Command::Render { scene, out, pfm } => offline::render(&scene, &out, pfm.as_deref()),
+        Command::Bench {
+            name,
+            json,
+            data,
+            sizes,
+            iterations,
+        } => {
+            let data = data.or_else(voxlight_volumes::testdata::shared_data_dir);
+            let result = match name.as_str() {
+                "raymarch" => bench::raymarch(&bench::RaymarchBench {
+                    data_dir: data.as_deref(),
+                    sizes: &sizes,
+                    iterations: iterations.max(1),
+                })?,
+                other => anyhow::bail!("unknown benchmark `{other}`; available: raymarch"),
+            };
+            if json {
+                println!("{result}");
+            } else {
+                println!("{}", serde_json::to_string_pretty(&result)?);
+            }
+            Ok(())
+        }
+    }
+}
+
+fn serve(listen: SocketAddr, config: ServerConfig) -> anyhow::Result<()> {
+    let engine = voxlight_engine::Engine::new()?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .thread_name("voxlight-io")
+        .build()?;
+    runtime.block_on(async move {
+        let shutdown = CancellationToken::new();
+        let server = Server::start(&config, engine, shutdown.clone())?;
+        let listener = tokio::net::TcpListener::bind(listen)
+            .await
+            .with_context(|| format!("cannot listen on {listen}"))?;
+        tracing::info!("serving http://{}", listener.local_addr()?);
+        tokio::spawn(async move {
+            wait_for_signal().await;
+            tracing::info!("shutting down");
+            shutdown.cancel();
+        });
+        server.run(listener).await?;
+        Ok(())
+    })
+}
+
+async fn wait_for_signal() {
+    let ctrl_c = tokio::signal::ctrl_c();
+    #[cfg(unix)]
+    {
+        let mut term = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(term) => term,
+            Err(_) => {
+                let _ = ctrl_c.await;
+                return;
+            }
+        };
+        tokio::select! {
+            _ = ctrl_c => {}
+            _ = term.recv() => {}
+        }
+    }
+    #[cfg(not(unix))]
+    let _ = ctrl_c.await;
+}

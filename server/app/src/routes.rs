@@ -1,0 +1,78 @@
+//! HTTP routes: the embedded web client, `/ws`, `/healthz` and `/api/datasets`.
+
+use std::sync::Arc;
+
+use axum::Router;
+use axum::extract::ws::WebSocketUpgrade;
+use axum::extract::{Path, State};
+use axum::http::{StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use serde_json::json;
+
+use crate::AppState;
+
+include!(concat!(env!("OUT_DIR"), "/web_files.rs"));
+
+/// Largest WebSocket message accepted at the transport; larger text messages within this bound
+/// get a `too_large` error reply and the connection survives.
+const TRANSPORT_MAX_MESSAGE: usize = 1 << 20;
+
+pub fn app(state: Arc<AppState>) -> Router {
+    Router::new()
+        .route("/", get(|| async { static_file("index.html") }))
+        .route("/healthz", get(healthz))
+        .route("/api/datasets", get(datasets))
+        .route("/ws", get(websocket))
+        .route("/{file}", get(|Path(file): Path<String>| async move { static_file(&file) }))
+        .with_state(state)
+}
+
+fn content_type(name: &str) -> &'static str {
+    match name.rsplit('.').next() {
+        Some("html") => "text/html; charset=utf-8",
+        Some("js" | "mjs") => "text/javascript; charset=utf-8",
+        Some("css") => "text/css; charset=utf-8",
+        Some("svg") => "image/svg+xml",
+        Some("png") => "image/png",
+        Some("json") => "application/json",
+        Some("ico") => "image/x-icon",
+        _ => "application/octet-stream",
+    }
+}
+
+fn static_file(name: &str) -> Response {
+    match WEB_FILES.iter().find(|(file, _)| *file == name) {
+        Some((_, bytes)) => (
+            [(header::CONTENT_TYPE, content_type(name)), (header::CACHE_CONTROL, "no-cache")],
+            *bytes,
+        )
+            .into_response(),
+        None => (StatusCode::NOT_FOUND, format!("no such file: {name}")).into_response(),
+    }
+}
+
+async fn healthz(State(state): State<Arc<AppState>>) -> impl IntoResponse {
+    axum::Json(json!({
+        "status": "ok",
+        "adapter": state.adapter,
+        "software_renderer": state.software_renderer,
+        "version": env!("CARGO_PKG_VERSION"),
+    }))
+}
+
+async fn datasets(State(state): State<Arc<AppState>>) -> impl IntoResponse {
+    axum::Json(json!({
+        "datasets": state.catalog.list(),
+        "default": state.default_dataset,
+    }))
+}
+
+async fn websocket(ws: WebSocketUpgrade, State(state): State<Arc<AppState>>) -> Response {
+    ws.max_message_size(TRANSPORT_MAX_MESSAGE)
+        .max_frame_size(TRANSPORT_MAX_MESSAGE)
+        .on_upgrade(move |socket| {
+            let tracker = state.tracker.clone();
+            tracker.track_future(crate::session::handle_socket(socket, state))
+        })
+}

@@ -1,0 +1,95 @@
+//! voxlight's rendering engine: the wgpu context, GPU volumes, transfer functions, lights,
+//! camera, the rendering techniques and tone mapping. No networking, no async runtime: callers
+//! drive it from a render thread.
+
+pub mod camera;
+pub mod gpu;
+pub mod passes;
+pub mod renderer;
+pub mod scene;
+pub mod scene_gpu;
+pub mod shaders;
+pub mod technique;
+pub mod techniques;
+pub mod tf;
+pub mod volume;
+
+use std::sync::Arc;
+
+pub use gpu::Gpu;
+pub use renderer::{Frame, Renderer};
+pub use scene::{Change, Scene};
+pub use technique::{StepReport, Technique, TechniqueStats};
+pub use volume::GpuVolume;
+
+/// Everything that can go wrong in the engine.
+#[derive(Debug, thiserror::Error)]
+pub enum EngineError {
+    #[error("{0}")]
+    NoAdapter(String),
+    #[error("GPU error: {0}")]
+    Gpu(String),
+    #[error("the GPU device was lost")]
+    DeviceLost,
+    #[error("needs {needed} bytes of GPU memory, {available} available")]
+    OutOfMemory { needed: u64, available: u64 },
+    #[error("unknown technique `{0}`")]
+    UnknownTechnique(String),
+    #[error("invalid scene: {0}")]
+    InvalidScene(String),
+}
+
+/// Pipelines shared by every session on one GPU; sessions own only buffers and textures.
+pub struct Engine {
+    pub gpu: Arc<Gpu>,
+    pub raymarch: passes::raymarch::RaymarchPass,
+    pub tonemap: passes::tonemap::TonemapPass,
+    /// Most GPU bytes one session may allocate (besides the shared volume texture).
+    pub session_budget: u64,
+}
+
+impl Engine {
+    /// Opens the GPU and builds every pipeline.
+    pub fn new() -> Result<Self, EngineError> {
+        Self::with_gpu(Arc::new(Gpu::new()?))
+    }
+
+    pub fn with_gpu(gpu: Arc<Gpu>) -> Result<Self, EngineError> {
+        let raymarch = passes::raymarch::RaymarchPass::new(&gpu);
+        let tonemap = passes::tonemap::TonemapPass::new(&gpu);
+        gpu.check()?;
+        let session_budget = gpu.limits.max_buffer_size.min(2 << 30);
+        Ok(Self {
+            gpu,
+            raymarch,
+            tonemap,
+            session_budget,
+        })
+    }
+
+    /// The techniques this engine offers.
+    pub fn techniques(&self) -> Vec<voxlight_protocol::TechniqueInfo> {
+        techniques::ALL
+            .iter()
+            .map(|(name, description)| voxlight_protocol::TechniqueInfo {
+                name: (*name).to_owned(),
+                description: (*description).to_owned(),
+            })
+            .collect()
+    }
+
+    /// Uploads a volume as a 3D texture (shared by every session that views it).
+    pub fn upload_volume(&self, volume: &voxlight_volumes::Volume) -> Result<Arc<GpuVolume>, EngineError> {
+        GpuVolume::upload(&self.gpu, volume).map(Arc::new)
+    }
+
+    /// A per-session renderer for `technique` on `volume`.
+    pub fn create_renderer(
+        &self,
+        technique: &str,
+        volume: Arc<GpuVolume>,
+        scene: &Scene,
+    ) -> Result<Renderer, EngineError> {
+        Renderer::new(self, technique, volume, scene)
+    }
+}

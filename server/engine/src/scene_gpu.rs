@@ -1,0 +1,111 @@
+//! GPU twins of the shared scene structs in shaders/scene.wgsl (identical field names).
+
+use bytemuck::{Pod, Zeroable};
+use voxlight_protocol::Light;
+
+use crate::camera::CameraBasis;
+use crate::scene::Scene;
+use crate::volume::GpuVolume;
+
+/// Matches `SceneUniforms` in scene.wgsl.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
+pub struct SceneUniforms {
+    pub eye: [f32; 3],
+    pub tan_half_fov: f32,
+    pub right: [f32; 3],
+    pub aspect: f32,
+    pub up: [f32; 3],
+    pub step: f32,
+    pub forward: [f32; 3],
+    pub density_scale: f32,
+    pub box_min: [f32; 3],
+    pub g: f32,
+    pub box_max: [f32; 3],
+    pub light_count: u32,
+    pub env_radiance: [f32; 3],
+    pub seed: u32,
+    pub width: u32,
+    pub height: u32,
+    pub iteration: u32,
+    pub pad0: u32,
+}
+
+pub const LIGHT_DIRECTIONAL: u32 = 0;
+pub const LIGHT_POINT: u32 = 1;
+
+/// Matches `GpuLight` in scene.wgsl.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
+pub struct GpuLight {
+    pub vector: [f32; 3],
+    pub kind: u32,
+    pub color: [f32; 3],
+    pub pad0: f32,
+}
+
+/// Directional and point lights for the GPU, and
+/// the summed environment radiance.
+pub fn gpu_lights(lights: &[Light]) -> (Vec<GpuLight>, [f32; 3]) {
+    let mut out = Vec::new();
+    let mut env = [0.0f32; 3];
+    for light in lights {
+        match *light {
+            Light::Directional { direction, irradiance } => out.push(GpuLight {
+                vector: crate::camera::normalize(direction).unwrap_or([0.0, 0.0, -1.0]),
+                kind: LIGHT_DIRECTIONAL,
+                color: irradiance,
+                pad0: 0.0,
+            }),
+            Light::Point { position, intensity } => out.push(GpuLight {
+                vector: position,
+                kind: LIGHT_POINT,
+                color: intensity,
+                pad0: 0.0,
+            }),
+            Light::Environment { radiance } => {
+                for k in 0..3 {
+                    env[k] += radiance[k];
+                }
+            }
+        }
+    }
+    (out, env)
+}
+
+/// Default march step: half the smallest voxel edge in world units.
+pub fn default_step(volume: &GpuVolume) -> f32 {
+    let voxel = (0..3)
+        .map(|k| volume.extent[k] / volume.dims[k] as f32)
+        .fold(f32::INFINITY, f32::min);
+    0.5 * voxel
+}
+
+impl SceneUniforms {
+    /// The uniforms of `scene` on `volume` for progressive iteration `iteration`.
+    pub fn new(scene: &Scene, volume: &GpuVolume, iteration: u32) -> Result<Self, String> {
+        let basis = CameraBasis::new(&scene.camera)?;
+        let (lights, env) = gpu_lights(&scene.lights);
+        let half = volume.extent.map(|e| e * 0.5);
+        Ok(Self {
+            eye: basis.eye,
+            tan_half_fov: basis.tan_half_fov,
+            right: basis.right,
+            aspect: scene.viewport.width as f32 / scene.viewport.height as f32,
+            up: basis.up,
+            step: default_step(volume),
+            forward: basis.forward,
+            density_scale: scene.params.density_scale,
+            box_min: half.map(|h| -h),
+            g: scene.params.g,
+            box_max: half,
+            light_count: lights.len() as u32,
+            env_radiance: env,
+            seed: scene.seed,
+            width: scene.viewport.width,
+            height: scene.viewport.height,
+            iteration,
+            pad0: 0,
+        })
+    }
+}

@@ -1,0 +1,182 @@
+//! Technique `raymarch`: progressive single scattering (shaders/raymarch.wgsl).
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use voxlight_protocol::MAX_LIGHTS;
+
+use crate::passes::raymarch::RaymarchBindings;
+use crate::scene_gpu::{GpuLight, SceneUniforms, gpu_lights};
+use crate::technique::{StepReport, Technique, TechniqueStats};
+use crate::tf::{TF_LUT_SIZE, bake};
+use crate::{Change, Engine, EngineError, GpuVolume, Scene};
+
+pub struct Raymarch {
+    volume: Arc<GpuVolume>,
+    scene_buf: wgpu::Buffer,
+    tf_lut: wgpu::Buffer,
+    lights: wgpu::Buffer,
+    accum: wgpu::Buffer,
+    bind_group: wgpu::BindGroup,
+    width: u32,
+    height: u32,
+    iteration: u32,
+    /// Iterations submitted per wait, adapted to the step budget.
+    batch: u32,
+}
+
+/// Bytes of the HDR accumulation buffer for a viewport.
+pub fn accum_bytes(width: u32, height: u32) -> u64 {
+    width as u64 * height as u64 * 16
+}
+
+impl Raymarch {
+    pub fn new(engine: &Engine, volume: Arc<GpuVolume>, scene: &Scene) -> Result<Self, EngineError> {
+        let device = &engine.gpu.device;
+        let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage: usage | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
+        };
+        let scene_buf = buffer(
+            "raymarch scene",
+            size_of::<SceneUniforms>() as u64,
+            wgpu::BufferUsages::UNIFORM,
+        );
+        let tf_lut = buffer("raymarch tf lut", (TF_LUT_SIZE * 16) as u64, wgpu::BufferUsages::STORAGE);
+        let lights = buffer(
+            "raymarch lights",
+            (MAX_LIGHTS * size_of::<GpuLight>()) as u64,
+            wgpu::BufferUsages::STORAGE,
+        );
+        let (width, height) = (scene.viewport.width, scene.viewport.height);
+        let accum = buffer(
+            "raymarch accum",
+            accum_bytes(width, height),
+            wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+        );
+        let bind_group = engine.raymarch.bind_group(
+            &engine.gpu,
+            &RaymarchBindings {
+                scene: &scene_buf,
+                volume: &volume.view,
+                tf_lut: &tf_lut,
+                lights: &lights,
+                accum: &accum,
+            },
+        );
+        let technique = Self {
+            volume,
+            scene_buf,
+            tf_lut,
+            lights,
+            accum,
+            bind_group,
+            width,
+            height,
+            iteration: 0,
+            batch: 1,
+        };
+        technique.write_tf(engine, scene);
+        technique.write_lights(engine, scene);
+        Ok(technique)
+    }
+
+    fn write_tf(&self, engine: &Engine, scene: &Scene) {
+        engine
+            .gpu
+            .queue
+            .write_buffer(&self.tf_lut, 0, bytemuck::cast_slice(&bake(&scene.tf)));
+    }
+
+    fn write_lights(&self, engine: &Engine, scene: &Scene) {
+        let (lights, _) = gpu_lights(&scene.lights);
+        if !lights.is_empty() {
+            engine.gpu.queue.write_buffer(&self.lights, 0, bytemuck::cast_slice(&lights));
+        }
+    }
+}
+
+impl Technique for Raymarch {
+    fn name(&self) -> &'static str {
+        "raymarch"
+    }
+
+    fn apply(&mut self, engine: &Engine, scene: &Scene, change: &Change) -> Result<(), EngineError> {
+        match change {
+            Change::Tf { .. } => self.write_tf(engine, scene),
+            Change::Lights => self.write_lights(engine, scene),
+            Change::Viewport => {
+                *self = Raymarch::new(engine, self.volume.clone(), scene)?;
+            }
+            Change::Camera | Change::Params => {}
+            // More iterations continue the same picture.
+            Change::Iterations => return Ok(()),
+        }
+        self.iteration = 0;
+        Ok(())
+    }
+
+    fn step(&mut self, engine: &Engine, scene: &Scene, budget: Duration) -> Result<StepReport, EngineError> {
+        let target = scene.target_iterations;
+        let start = Instant::now();
+        let mut done = 0;
+        while self.iteration < target {
+            let batch = self.batch.min(target - self.iteration);
+            let batch_start = Instant::now();
+            for _ in 0..batch {
+                let uniforms = SceneUniforms::new(scene, &self.volume, self.iteration)
+                    .map_err(EngineError::InvalidScene)?;
+                engine.gpu.queue.write_buffer(&self.scene_buf, 0, bytemuck::bytes_of(&uniforms));
+                let mut encoder = engine
+                    .gpu
+                    .device
+                    .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("raymarch step") });
+                engine.raymarch.encode(&mut encoder, &self.bind_group, self.width, self.height);
+                engine.gpu.queue.submit([encoder.finish()]);
+                self.iteration += 1;
+            }
+            engine.gpu.wait_idle()?;
+            done += batch;
+            // Fill about half the remaining budget with the next batch.
+            let per_iteration = batch_start.elapsed() / batch;
+            let remaining = budget.saturating_sub(start.elapsed());
+            if remaining.is_zero() {
+                break;
+            }
+            let fit = (remaining.as_secs_f64() / per_iteration.as_secs_f64().max(1e-6) * 0.5) as u32;
+            if fit == 0 {
+                break;
+            }
+            self.batch = fit.clamp(1, 64);
+        }
+        Ok(StepReport {
+            iterations_done: done,
+            iteration: self.iteration,
+            converged: self.iteration >= target,
+            gpu_time: start.elapsed(),
+        })
+    }
+
+    fn output(&self) -> &wgpu::Buffer {
+        &self.accum
+    }
+
+    fn iteration(&self) -> u32 {
+        self.iteration
+    }
+
+    fn stats(&self) -> TechniqueStats {
+        TechniqueStats {
+            name: self.name(),
+            iteration: self.iteration,
+            memory_bytes: accum_bytes(self.width, self.height)
+                + (TF_LUT_SIZE * 16) as u64
+                + (MAX_LIGHTS * size_of::<GpuLight>()) as u64
+                + size_of::<SceneUniforms>() as u64,
+        }
+    }
+}

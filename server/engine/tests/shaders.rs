@@ -1,0 +1,93 @@
+//! Every WGSL file is validated with naga, and the Rust structs each pass binds have the same
+//! layout as their WGSL twins.
+
+use std::mem::{offset_of, size_of};
+
+use voxlight_engine::passes::tonemap::ToneParams;
+use voxlight_engine::scene_gpu::{GpuLight, SceneUniforms};
+use voxlight_engine::shaders;
+
+fn parse_and_validate(name: &str, source: &str) -> naga::Module {
+    let module = naga::front::wgsl::parse_str(source)
+        .unwrap_or_else(|e| panic!("{name}: WGSL parse error:\n{}", e.emit_to_string(source)));
+    naga::valid::Validator::new(naga::valid::ValidationFlags::all(), naga::valid::Capabilities::all())
+        .validate(&module)
+        .unwrap_or_else(|e| panic!("{name}: validation error:\n{}", e.emit_to_string(source)));
+    module
+}
+
+#[test]
+fn every_composed_shader_validates() {
+    for (name, source) in shaders::all() {
+        parse_and_validate(name, &source);
+    }
+}
+
+#[test]
+fn every_wgsl_file_is_part_of_a_validated_shader() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shaders");
+    let composed: Vec<String> = shaders::all().into_iter().map(|(_, s)| s).collect();
+    let mut count = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_some_and(|e| e == "wgsl") {
+            let text = std::fs::read_to_string(&path).unwrap();
+            assert!(
+                composed.iter().any(|s| s.contains(&text)),
+                "{} is not used by any shader in shaders::all()",
+                path.display()
+            );
+            count += 1;
+        }
+    }
+    assert!(count >= 5, "found only {count} WGSL files in {}", dir.display());
+}
+
+/// Asserts that the WGSL struct `name` has the Rust struct's size and field offsets.
+fn assert_layout(module: &naga::Module, name: &str, rust_size: usize, rust_fields: &[(&str, usize)]) {
+    let (_, ty) = module
+        .types
+        .iter()
+        .find(|(_, t)| t.name.as_deref() == Some(name))
+        .unwrap_or_else(|| panic!("struct {name} not found in WGSL"));
+    let naga::TypeInner::Struct { members, span } = &ty.inner else {
+        panic!("{name} is not a struct");
+    };
+    assert_eq!(*span as usize, rust_size, "{name}: WGSL size {span} != Rust size {rust_size}");
+    assert_eq!(members.len(), rust_fields.len(), "{name}: field count differs");
+    for (member, (field, offset)) in members.iter().zip(rust_fields) {
+        assert_eq!(member.name.as_deref(), Some(*field), "{name}: field order/name differs");
+        assert_eq!(member.offset as usize, *offset, "{name}.{field}: WGSL offset {} != Rust {offset}", member.offset);
+    }
+}
+
+macro_rules! fields {
+    ($ty:ty: $($f:ident),* $(,)?) => {
+        &[$((stringify!($f), offset_of!($ty, $f))),*]
+    };
+}
+
+#[test]
+fn rust_and_wgsl_layouts_agree() {
+    let raymarch = parse_and_validate("raymarch", &shaders::raymarch());
+    assert_layout(
+        &raymarch,
+        "SceneUniforms",
+        size_of::<SceneUniforms>(),
+        fields!(SceneUniforms: eye, tan_half_fov, right, aspect, up, step, forward, density_scale, box_min, g,
+            box_max, light_count, env_radiance, seed, width, height, iteration, pad0),
+    );
+    assert_layout(
+        &raymarch,
+        "GpuLight",
+        size_of::<GpuLight>(),
+        fields!(GpuLight: vector, kind, color, pad0),
+    );
+    let tonemap = parse_and_validate("tonemap", &shaders::tonemap());
+    assert_layout(
+        &tonemap,
+        "ToneParams",
+        size_of::<ToneParams>(),
+        fields!(ToneParams: width, height, exposure, pad0),
+    );
+}

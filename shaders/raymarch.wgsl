@@ -1,0 +1,124 @@
+// Technique `raymarch`: single scattering with shadow rays to every light and the environment.
+// One progressive sample per pixel and dispatch: a jittered march along the view ray picks one
+// scattering location with probability proportional to its weight T·(1 − exp(−σt·dt))
+// (weighted reservoir), where shadow rays to every light and one phase-sampled environment ray
+// estimate the in-scattered radiance. Transmittance to the background is computed exactly for
+// the march, so an absorbing-only medium is noise-free up to the jitter of the step.
+// Rust twin: server/engine/src/passes/raymarch.rs.
+
+@group(0) @binding(0) var<uniform> scene: SceneUniforms;
+@group(0) @binding(1) var volume_tex: texture_3d<f32>;
+@group(0) @binding(2) var<storage, read> tf_lut: array<vec4<f32>>;
+@group(0) @binding(3) var<storage, read> lights: array<GpuLight>;
+@group(0) @binding(4) var<storage, read_write> accum: array<vec4<f32>>;
+
+// Below this view transmittance the march stops (relative bias at most 1e-4).
+const VIEW_T_CUTOFF: f32 = 1e-4;
+// Above this optical depth a shadow ray counts as blocked (exp(-16) ≈ 1e-7).
+const SHADOW_TAU_CUTOFF: f32 = 16.0;
+
+// Albedo (rgb) and extinction sigma_t (a) at world position p.
+fn medium_at(p: vec3<f32>) -> vec4<f32> {
+    let u = (p - scene.box_min) / (scene.box_max - scene.box_min);
+    let c = classify(sample_volume(u));
+    return vec4<f32>(c.rgb, c.a * scene.density_scale);
+}
+
+// Transmittance from p along dir over at most t_max, by a jittered Riemann sum of the optical
+// depth (an unbiased estimate of it for any jitter distribution uniform over one step).
+fn transmittance(p: vec3<f32>, dir: vec3<f32>, t_max: f32, jitter: f32) -> f32 {
+    let hit = intersect_box(p, dir, scene.box_min, scene.box_max);
+    let t_end = min(hit.y, t_max);
+    var t = hit.x + jitter * scene.step;
+    var tau = 0.0;
+    loop {
+        if (t >= t_end) {
+            break;
+        }
+        tau += medium_at(p + dir * t).a * scene.step;
+        if (tau > SHADOW_TAU_CUTOFF) {
+            return 0.0;
+        }
+        t += scene.step;
+    }
+    return exp(-tau);
+}
+
+// Radiance scattered toward -view_dir at p per unit scattering albedo.
+fn in_scattered(p: vec3<f32>, view_dir: vec3<f32>, rng: ptr<function, Rng>) -> vec3<f32> {
+    var s = vec3<f32>(0.0);
+    for (var i = 0u; i < scene.light_count; i++) {
+        let light = lights[i];
+        if (light.kind == LIGHT_DIRECTIONAL) {
+            let to_light = -light.vector;
+            let tr = transmittance(p, to_light, 1e30, rng_next(rng));
+            s += light.color * tr * phase_hg(dot(light.vector, -view_dir), scene.g);
+        } else {
+            let offset = light.vector - p;
+            let dist = length(offset);
+            let to_light = offset / max(dist, 1e-6);
+            let tr = transmittance(p, to_light, dist, rng_next(rng));
+            let irradiance = light.color / max(dist * dist, 1e-8);
+            s += irradiance * tr * phase_hg(dot(-to_light, -view_dir), scene.g);
+        }
+    }
+    if (any(scene.env_radiance > vec3<f32>(0.0))) {
+        // Direction toward the environment sampled by the phase function: weight 1.
+        let u1 = rng_next(rng);
+        let u2 = rng_next(rng);
+        let toward_env = sample_hg(view_dir, scene.g, u1, u2);
+        s += scene.env_radiance * transmittance(p, toward_env, 1e30, rng_next(rng));
+    }
+    return s;
+}
+
+@compute @workgroup_size(8, 8)
+fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (gid.x >= scene.width || gid.y >= scene.height) {
+        return;
+    }
+    let pixel = gid.y * scene.width + gid.x;
+    var rng = rng_new(scene.seed, pixel, scene.iteration);
+    let px = vec2<f32>(f32(gid.x) + rng_next(&rng), f32(gid.y) + rng_next(&rng));
+    let dir = camera_ray_dir(scene, px);
+
+    var radiance = scene.env_radiance;
+    let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
+    if (hit.x < hit.y) {
+        var transmit = 1.0;
+        var weight_sum = 0.0;
+        var chosen_pos = vec3<f32>(0.0);
+        var chosen_albedo = vec3<f32>(0.0);
+        var t = hit.x + rng_next(&rng) * scene.step;
+        loop {
+            if (t >= hit.y || transmit < VIEW_T_CUTOFF) {
+                break;
+            }
+            let p = scene.eye + dir * t;
+            let m = medium_at(p);
+            if (m.a > 0.0) {
+                let alpha = 1.0 - exp(-m.a * scene.step);
+                let w = transmit * alpha;
+                weight_sum += w;
+                // Weighted reservoir: keep this location with probability w / weight_sum.
+                if (rng_next(&rng) * weight_sum < w) {
+                    chosen_pos = p;
+                    chosen_albedo = m.rgb;
+                }
+                transmit *= 1.0 - alpha;
+            }
+            t += scene.step;
+        }
+        radiance = scene.env_radiance * transmit;
+        if (weight_sum > 0.0 && any(chosen_albedo > vec3<f32>(0.0))) {
+            radiance += weight_sum * chosen_albedo * in_scattered(chosen_pos, dir, &rng);
+        }
+    }
+
+    let estimate = vec4<f32>(radiance, 1.0);
+    if (scene.iteration == 0u) {
+        accum[pixel] = estimate;
+    } else {
+        accum[pixel] += estimate;
+    }
+}
