@@ -154,12 +154,18 @@ pub enum ClientMessage {
         technique: Option<String>,
     },
     /// Open another dataset (by name, as listed by `/api/datasets`).
-    Dataset { name: String },
+    Dataset {
+        name: String,
+    },
     Camera(Camera),
     Tf(TransferFunction),
     /// Replace all lights.
-    Lights { lights: Vec<Light> },
-    Technique { name: String },
+    Lights {
+        lights: Vec<Light>,
+    },
+    Technique {
+        name: String,
+    },
     Viewport(Viewport),
     /// Change any of the render parameters; absent fields keep their value.
     Params {
@@ -284,7 +290,9 @@ pub enum ServerMessage {
         message: String,
     },
     /// The server is going away.
-    Bye { reason: String },
+    Bye {
+        reason: String,
+    },
 }
 
 /// Progress and cost of the current picture.
@@ -412,20 +420,41 @@ mod tests {
             r#"{"type":"hello","protocol":1,"viewport":{"width":64,"height":48},"dataset":"phantom:sphere"}"#,
         )
         .unwrap();
-        assert!(matches!(hello, ClientMessage::Hello { protocol: 1, viewport: Some(Viewport { width: 64, height: 48 }), .. }));
+        assert!(matches!(
+            hello,
+            ClientMessage::Hello {
+                protocol: 1,
+                viewport: Some(Viewport {
+                    width: 64,
+                    height: 48
+                }),
+                ..
+            }
+        ));
         let cam: ClientMessage = serde_json::from_str(
             r#"{"type":"camera","eye":[0,0,3],"target":[0,0,0],"up":[0,1,0],"fov_deg":40}"#,
         )
         .unwrap();
-        assert!(matches!(cam, ClientMessage::Camera(Camera { fov_deg: 40.0, .. })));
+        assert!(matches!(
+            cam,
+            ClientMessage::Camera(Camera { fov_deg: 40.0, .. })
+        ));
         let tf: ClientMessage = serde_json::from_str(
             r#"{"type":"tf","points":[{"value":0.5,"color":[1,0,0],"opacity":0.2}]}"#,
         )
         .unwrap();
-        assert!(matches!(tf, ClientMessage::Tf(TransferFunction { ref points }) if points.len() == 1));
+        assert!(
+            matches!(tf, ClientMessage::Tf(TransferFunction { ref points }) if points.len() == 1)
+        );
         let vp: ClientMessage =
             serde_json::from_str(r#"{"type":"viewport","width":10,"height":20}"#).unwrap();
-        assert_eq!(vp, ClientMessage::Viewport(Viewport { width: 10, height: 20 }));
+        assert_eq!(
+            vp,
+            ClientMessage::Viewport(Viewport {
+                width: 10,
+                height: 20
+            })
+        );
         let lights: ClientMessage = serde_json::from_str(
             r#"{"type":"lights","lights":[{"kind":"environment","radiance":[1,1,1]},{"kind":"point","position":[0,0,2],"intensity":[3,3,3]}]}"#,
         )

@@ -17,11 +17,17 @@ fn main() {
         })
         .unwrap_or_default();
     names.sort();
-    let mut code = String::from("/// Files of web-client/, by name.\npub static WEB_FILES: &[(&str, &[u8])] = &[\n");
+    let mut code = String::from(
+        "/// Files of web-client/, by name.\npub static WEB_FILES: &[(&str, &[u8])] = &[\n",
+    );
     for name in &names {
         let path = dir.join(name);
         println!("cargo:rerun-if-changed={}", path.display());
-        let _ = writeln!(code, "    ({name:?}, include_bytes!({:?})),", path.display().to_string());
+        let _ = writeln!(
+            code,
+            "    ({name:?}, include_bytes!({:?})),",
+            path.display().to_string()
+        );
     }
     code.push_str("];\n");
     let out = Path::new(&std::env::var("OUT_DIR").expect("OUT_DIR")).join("web_files.rs");

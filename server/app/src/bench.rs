@@ -25,7 +25,10 @@ pub fn raymarch(options: &RaymarchBench) -> anyhow::Result<serde_json::Value> {
             "vti/bonsai.vti".to_owned(),
             voxlight_volumes::load(&path).with_context(|| format!("loading {}", path.display()))?,
         ),
-        _ => ("phantom:cornell@256".to_owned(), voxlight_volumes::phantom("cornell", 256)?),
+        _ => (
+            "phantom:cornell@256".to_owned(),
+            voxlight_volumes::phantom("cornell", 256)?,
+        ),
     };
     volume.name = dataset.clone();
     let gpu_volume = engine.upload_volume(&volume)?;
@@ -35,7 +38,10 @@ pub fn raymarch(options: &RaymarchBench) -> anyhow::Result<serde_json::Value> {
             camera: Camera::default(),
             tf: crate::datasets::default_tf(&volume),
             lights: default_lights(),
-            viewport: Viewport { width: size, height: size },
+            viewport: Viewport {
+                width: size,
+                height: size,
+            },
             target_iterations: u32::MAX,
             ..Scene::default()
         };
@@ -51,7 +57,9 @@ pub fn raymarch(options: &RaymarchBench) -> anyhow::Result<serde_json::Value> {
         let done = renderer.iteration() - before;
         let ms = elapsed.as_secs_f64() * 1000.0 / done as f64;
         eprintln!("raymarch {size}x{size}: {ms:.1} ms/iteration over {done} iterations");
-        results.push(json!({"width": size, "height": size, "iterations": done, "ms_per_iteration": ms}));
+        results.push(
+            json!({"width": size, "height": size, "iterations": done, "ms_per_iteration": ms}),
+        );
     }
     Ok(json!({
         "bench": "raymarch",

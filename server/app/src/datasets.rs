@@ -5,7 +5,9 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, Weak};
 
-use voxlight_protocol::{DatasetDetails, DatasetInfo, TfPoint, TransferFunction};
+use voxlight_protocol::{
+    DatasetDetails, DatasetInfo, Light, TfPoint, TransferFunction, default_lights,
+};
 use voxlight_volumes::{DatasetEntry, Volume, VolumeError};
 
 /// Edge length of the built-in phantoms served to clients.
@@ -55,13 +57,18 @@ impl Catalog {
             if !dir.is_dir() {
                 return Err(DatasetError::NoDataDir(dir.to_owned()));
             }
-            let found = voxlight_volumes::scan_catalog(dir).map_err(|source| DatasetError::Load {
-                name: dir.display().to_string(),
-                source,
-            })?;
+            let found =
+                voxlight_volumes::scan_catalog(dir).map_err(|source| DatasetError::Load {
+                    name: dir.display().to_string(),
+                    source,
+                })?;
             for DatasetEntry { name, path, kind } in found {
                 entries.push(Entry {
-                    info: DatasetInfo { name, kind, details: None },
+                    info: DatasetInfo {
+                        name,
+                        kind,
+                        details: None,
+                    },
                     path: Some(path),
                 });
             }
@@ -79,7 +86,10 @@ impl Catalog {
 
     /// Every dataset, with details for those loaded so far.
     pub fn list(&self) -> Vec<DatasetInfo> {
-        self.entries.iter().filter_map(|e| self.info(&e.info.name)).collect()
+        self.entries
+            .iter()
+            .filter_map(|e| self.info(&e.info.name))
+            .collect()
     }
 
     pub fn info(&self, name: &str) -> Option<DatasetInfo> {
@@ -96,7 +106,12 @@ impl Catalog {
             .iter()
             .find(|e| e.info.name == name)
             .ok_or_else(|| DatasetError::Unknown(name.to_owned()))?;
-        if let Some(volume) = self.loaded.lock().ok().and_then(|l| l.get(name).and_then(Weak::upgrade)) {
+        if let Some(volume) = self
+            .loaded
+            .lock()
+            .ok()
+            .and_then(|l| l.get(name).and_then(Weak::upgrade))
+        {
             return Ok(volume);
         }
         let started = std::time::Instant::now();
@@ -201,7 +216,7 @@ pub fn cornell_tf() -> TransferFunction {
         } else if name.contains("green") || name.contains("right") {
             ([0.1, 0.75, 0.12], 1.0)
         } else if name.contains("medium") || name.contains("fog") || name.contains("air") {
-            ([0.9, 0.9, 0.9], 0.02)
+            ([0.9, 0.9, 0.9], 0.008)
         } else if name.contains("empty") || name.contains("vacuum") {
             ([0.0, 0.0, 0.0], 0.0)
         } else {
@@ -213,11 +228,37 @@ pub fn cornell_tf() -> TransferFunction {
         points.push(point(v + 0.03, color, opacity));
     }
     points.sort_by(|a, b| a.value.total_cmp(&b.value));
-    if let Some(first) = points.first().copied() {
-        if first.value > 0.0 {
-            points.insert(0, point(0.0, [0.0; 3], 0.0));
-            points.insert(1, TfPoint { opacity: 0.0, ..first });
-        }
+    // Transparent below the first material (the empty value 0 never occurs inside the box).
+    if let Some(&first) = points.first().filter(|p| p.value > 0.0) {
+        points.splice(
+            0..0,
+            [
+                point(0.0, [0.0; 3], 0.0),
+                TfPoint {
+                    opacity: 0.0,
+                    ..first
+                },
+            ],
+        );
     }
     TransferFunction { points }
+}
+
+/// Lights that show a dataset well: the default key light and environment, except for the
+/// Cornell box, whose ceiling would shadow a light from above: it gets a point light under
+/// the ceiling, as in the historygram paper's Cornell scene.
+pub fn default_lights_for(volume: &Volume) -> Vec<Light> {
+    if volume.name.starts_with("phantom:cornell") {
+        let extent = volume.world_extent();
+        return vec![
+            Light::Point {
+                position: [0.0, -0.05 * extent[1], 0.36 * extent[2]],
+                intensity: [0.9, 0.85, 0.8],
+            },
+            Light::Environment {
+                radiance: [0.08, 0.08, 0.09],
+            },
+        ];
+    }
+    default_lights()
 }

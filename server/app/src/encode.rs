@@ -12,8 +12,15 @@ pub enum EncodeError {
 }
 
 fn check(rgba: &[u8], width: u32, height: u32) -> Result<(), EncodeError> {
-    if rgba.len() != width as usize * height as usize * 4 || width > u16::MAX as u32 || height > u16::MAX as u32 {
-        return Err(EncodeError::Size { width, height, len: rgba.len() });
+    if rgba.len() != width as usize * height as usize * 4
+        || width > u16::MAX as u32
+        || height > u16::MAX as u32
+    {
+        return Err(EncodeError::Size {
+            width,
+            height,
+            len: rgba.len(),
+        });
     }
     Ok(())
 }
@@ -29,7 +36,12 @@ pub fn jpeg(rgba: &[u8], width: u32, height: u32, quality: u8) -> Result<Vec<u8>
         jpeg_encoder::SamplingFactor::R_4_2_0
     });
     encoder
-        .encode(rgba, width as u16, height as u16, jpeg_encoder::ColorType::Rgba)
+        .encode(
+            rgba,
+            width as u16,
+            height as u16,
+            jpeg_encoder::ColorType::Rgba,
+        )
         .map_err(|e| EncodeError::Jpeg(e.to_string()))?;
     Ok(out)
 }
@@ -37,15 +49,24 @@ pub fn jpeg(rgba: &[u8], width: u32, height: u32, quality: u8) -> Result<Vec<u8>
 /// Lossless RGB PNG (alpha is always opaque, so it is dropped).
 pub fn png(rgba: &[u8], width: u32, height: u32) -> Result<Vec<u8>, EncodeError> {
     check(rgba, width, height)?;
-    let rgb: Vec<u8> = rgba.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect();
+    let rgb: Vec<u8> = rgba
+        .chunks_exact(4)
+        .flat_map(|p| [p[0], p[1], p[2]])
+        .collect();
     let mut out = Vec::new();
     let mut encoder = png::Encoder::new(&mut out, width, height);
     encoder.set_color(png::ColorType::Rgb);
     encoder.set_depth(png::BitDepth::Eight);
     encoder.set_compression(png::Compression::Fast);
-    let mut writer = encoder.write_header().map_err(|e| EncodeError::Png(e.to_string()))?;
-    writer.write_image_data(&rgb).map_err(|e| EncodeError::Png(e.to_string()))?;
-    writer.finish().map_err(|e| EncodeError::Png(e.to_string()))?;
+    let mut writer = encoder
+        .write_header()
+        .map_err(|e| EncodeError::Png(e.to_string()))?;
+    writer
+        .write_image_data(&rgb)
+        .map_err(|e| EncodeError::Png(e.to_string()))?;
+    writer
+        .finish()
+        .map_err(|e| EncodeError::Png(e.to_string()))?;
     Ok(out)
 }
 

@@ -51,7 +51,11 @@ pub struct Server {
 
 impl Server {
     /// Opens the GPU, scans the data folder and starts the render thread.
-    pub fn start(config: &ServerConfig, engine: Engine, shutdown: CancellationToken) -> anyhow::Result<Self> {
+    pub fn start(
+        config: &ServerConfig,
+        engine: Engine,
+        shutdown: CancellationToken,
+    ) -> anyhow::Result<Self> {
         let catalog = Arc::new(Catalog::new(config.data_dir.as_deref())?);
         let default_dataset = config
             .default_dataset
@@ -77,16 +81,23 @@ impl Server {
             shutdown,
             tracker: TaskTracker::new(),
         });
-        Ok(Self { state, render_thread })
+        Ok(Self {
+            state,
+            render_thread,
+        })
     }
 
     /// Serves until `shutdown` is cancelled, then drains sessions and stops the render thread.
     pub async fn run(self, listener: TcpListener) -> std::io::Result<()> {
-        let Server { state, render_thread } = self;
+        let Server {
+            state,
+            render_thread,
+        } = self;
         let shutdown = state.shutdown.clone();
         let tracker = state.tracker.clone();
         let router = app(state.clone());
-        let serve = axum::serve(listener, router).with_graceful_shutdown(async move { shutdown.cancelled().await });
+        let serve = axum::serve(listener, router)
+            .with_graceful_shutdown(async move { shutdown.cancelled().await });
         let result = serve.await;
         tracker.close();
         tracker.wait().await;

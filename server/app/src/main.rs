@@ -9,7 +9,11 @@ use tokio_util::sync::CancellationToken;
 use voxlight_server::{Server, ServerConfig, bench, offline};
 
 #[derive(Parser)]
-#[command(name = "voxlight", version, about = "Remote volume rendering with global illumination")]
+#[command(
+    name = "voxlight",
+    version,
+    about = "Remote volume rendering with global illumination"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -68,7 +72,13 @@ fn main() -> anyhow::Result<()> {
             listen,
             data,
             default_dataset,
-        } => serve(listen, ServerConfig { data_dir: data, default_dataset }),
+        } => serve(
+            listen,
+            ServerConfig {
+                data_dir: data,
+                default_dataset,
+            },
+        ),
         Command::Render { scene, out, pfm } => offline::render(&scene, &out, pfm.as_deref()),
         Command::Bench {
             name,
@@ -123,13 +133,14 @@ async fn wait_for_signal() {
     let ctrl_c = tokio::signal::ctrl_c();
     #[cfg(unix)]
     {
-        let mut term = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-            Ok(term) => term,
-            Err(_) => {
-                let _ = ctrl_c.await;
-                return;
-            }
-        };
+        let mut term =
+            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+                Ok(term) => term,
+                Err(_) => {
+                    let _ = ctrl_c.await;
+                    return;
+                }
+            };
         tokio::select! {
             _ = ctrl_c => {}
             _ = term.recv() => {}

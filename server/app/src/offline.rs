@@ -17,7 +17,11 @@ pub fn open_dataset(spec: &str, base: &Path) -> anyhow::Result<Volume> {
             .with_context(|| format!("phantom `{name}`"))?
     } else {
         let path = Path::new(spec);
-        let path: PathBuf = if path.is_absolute() { path.to_owned() } else { base.join(path) };
+        let path: PathBuf = if path.is_absolute() {
+            path.to_owned()
+        } else {
+            base.join(path)
+        };
         voxlight_volumes::load(&path).with_context(|| format!("loading {}", path.display()))?
     };
     volume.name = spec.to_owned();
@@ -28,7 +32,10 @@ pub fn open_dataset(spec: &str, base: &Path) -> anyhow::Result<Volume> {
 pub fn engine_scene(file: &SceneFile, volume: &Volume) -> anyhow::Result<Scene> {
     let scene = Scene {
         camera: file.camera,
-        tf: file.tf.clone().unwrap_or_else(|| crate::datasets::default_tf(volume)),
+        tf: file
+            .tf
+            .clone()
+            .unwrap_or_else(|| crate::datasets::default_tf(volume)),
         lights: file.lights.clone(),
         params: RenderParams {
             density_scale: file.density_scale,
@@ -42,15 +49,18 @@ pub fn engine_scene(file: &SceneFile, volume: &Volume) -> anyhow::Result<Scene> 
         seed: file.seed,
         target_iterations: file.iterations.max(1),
     };
-    scene.validate().map_err(|e| anyhow::anyhow!("invalid scene: {e}"))?;
+    scene
+        .validate()
+        .map_err(|e| anyhow::anyhow!("invalid scene: {e}"))?;
     Ok(scene)
 }
 
 /// Renders `scene_path` to `out` (PNG) and optionally `pfm` (linear radiance).
 pub fn render(scene_path: &Path, out: &Path, pfm: Option<&Path>) -> anyhow::Result<()> {
-    let text = std::fs::read_to_string(scene_path).with_context(|| format!("reading {}", scene_path.display()))?;
-    let file: SceneFile =
-        serde_json::from_str(&text).with_context(|| format!("parsing scene file {}", scene_path.display()))?;
+    let text = std::fs::read_to_string(scene_path)
+        .with_context(|| format!("reading {}", scene_path.display()))?;
+    let file: SceneFile = serde_json::from_str(&text)
+        .with_context(|| format!("parsing scene file {}", scene_path.display()))?;
     let base = scene_path.parent().unwrap_or(Path::new("."));
     let volume = open_dataset(&file.dataset, base)?;
     let scene = engine_scene(&file, &volume)?;
@@ -128,8 +138,14 @@ pub fn read_pfm(path: &Path) -> anyhow::Result<(u32, u32, Vec<[f32; 3]>)> {
     for (i, chunk) in data.chunks_exact(12).enumerate() {
         let (row, col) = (i / width as usize, i % width as usize);
         let top_row = height as usize - 1 - row;
-        rgb[top_row * width as usize + col] =
-            std::array::from_fn(|k| f32::from_le_bytes([chunk[4 * k], chunk[4 * k + 1], chunk[4 * k + 2], chunk[4 * k + 3]]));
+        rgb[top_row * width as usize + col] = std::array::from_fn(|k| {
+            f32::from_le_bytes([
+                chunk[4 * k],
+                chunk[4 * k + 1],
+                chunk[4 * k + 2],
+                chunk[4 * k + 3],
+            ])
+        });
     }
     Ok((width, height, rgb))
 }

@@ -8,7 +8,9 @@ use std::sync::{Arc, Weak};
 use std::time::{Duration, Instant};
 
 use tokio::sync::{mpsc, oneshot, watch};
-use voxlight_engine::{Change, Engine, EngineError, Frame, GpuVolume, Renderer, Scene, TechniqueStats};
+use voxlight_engine::{
+    Change, Engine, EngineError, Frame, GpuVolume, Renderer, Scene, TechniqueStats,
+};
 use voxlight_protocol::ErrorCode;
 use voxlight_volumes::Volume;
 
@@ -177,7 +179,10 @@ impl RenderThread {
             .map(|(id, _)| *id)
             .collect();
         ids.sort_unstable();
-        ids.iter().copied().find(|&id| id > self.last_served).or(ids.first().copied())
+        ids.iter()
+            .copied()
+            .find(|&id| id > self.last_served)
+            .or(ids.first().copied())
     }
 
     fn gpu_volume(&mut self, volume: &Volume) -> Result<Arc<GpuVolume>, EngineError> {
@@ -186,7 +191,8 @@ impl RenderThread {
         }
         let uploaded = self.engine.upload_volume(volume)?;
         self.volumes.retain(|_, weak| weak.strong_count() > 0);
-        self.volumes.insert(volume.name.clone(), Arc::downgrade(&uploaded));
+        self.volumes
+            .insert(volume.name.clone(), Arc::downgrade(&uploaded));
         Ok(uploaded)
     }
 
@@ -202,9 +208,9 @@ impl RenderThread {
                 events,
                 reply,
             } => {
-                let result = self
-                    .gpu_volume(&volume)
-                    .and_then(|gpu_volume| self.engine.create_renderer(&technique, gpu_volume, &scene));
+                let result = self.gpu_volume(&volume).and_then(|gpu_volume| {
+                    self.engine.create_renderer(&technique, gpu_volume, &scene)
+                });
                 match result {
                     Ok(renderer) => {
                         self.sessions.insert(
@@ -232,7 +238,9 @@ impl RenderThread {
                 changes,
                 version,
             } => {
-                let Some(session) = self.sessions.get_mut(&id) else { return };
+                let Some(session) = self.sessions.get_mut(&id) else {
+                    return;
+                };
                 session.scene = scene;
                 session.version = version;
                 session.dirty = true;
@@ -256,7 +264,8 @@ impl RenderThread {
                 version,
                 reply,
             } => {
-                let Some(current) = self.sessions.get(&id).map(|s| s.renderer.volume().clone()) else {
+                let Some(current) = self.sessions.get(&id).map(|s| s.renderer.volume().clone())
+                else {
                     let _ = reply.send(Err(EngineError::Gpu("session is closed".into())));
                     return;
                 };
@@ -264,7 +273,8 @@ impl RenderThread {
                     Some(volume) => self.gpu_volume(&volume),
                     None => Ok(current),
                 };
-                let result = gpu_volume.and_then(|v| self.engine.create_renderer(&technique, v, &scene));
+                let result =
+                    gpu_volume.and_then(|v| self.engine.create_renderer(&technique, v, &scene));
                 match (result, self.sessions.get_mut(&id)) {
                     (Ok(renderer), Some(session)) => {
                         session.renderer = renderer;
@@ -294,7 +304,9 @@ impl RenderThread {
     fn serve(&mut self, id: SessionId) {
         self.last_served = id;
         let engine = self.engine.clone();
-        let Some(session) = self.sessions.get_mut(&id) else { return };
+        let Some(session) = self.sessions.get_mut(&id) else {
+            return;
+        };
         let started = Instant::now();
         let result = session
             .renderer

@@ -24,7 +24,10 @@ pub fn app(state: Arc<AppState>) -> Router {
         .route("/healthz", get(healthz))
         .route("/api/datasets", get(datasets))
         .route("/ws", get(websocket))
-        .route("/{file}", get(|Path(file): Path<String>| async move { static_file(&file) }))
+        .route(
+            "/{file}",
+            get(|Path(file): Path<String>| async move { static_file(&file) }),
+        )
         .with_state(state)
 }
 
@@ -44,7 +47,10 @@ fn content_type(name: &str) -> &'static str {
 fn static_file(name: &str) -> Response {
     match WEB_FILES.iter().find(|(file, _)| *file == name) {
         Some((_, bytes)) => (
-            [(header::CONTENT_TYPE, content_type(name)), (header::CACHE_CONTROL, "no-cache")],
+            [
+                (header::CONTENT_TYPE, content_type(name)),
+                (header::CACHE_CONTROL, "no-cache"),
+            ],
             *bytes,
         )
             .into_response(),

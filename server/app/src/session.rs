@@ -14,8 +14,8 @@ use voxlight_engine::camera::CameraBasis;
 use voxlight_engine::scene::{validate_lights, validate_params, validate_viewport};
 use voxlight_engine::{Change, Scene};
 use voxlight_protocol::{
-    ClientMessage, ErrorCode, FrameFormat, FrameMeta, MAX_MESSAGE_BYTES, PROTOCOL_VERSION, RenderParams,
-    ServerMessage, SessionState, Stats, default_lights, join_frame,
+    ClientMessage, ErrorCode, FrameFormat, FrameMeta, MAX_MESSAGE_BYTES, PROTOCOL_VERSION,
+    RenderParams, ServerMessage, SessionState, Stats, join_frame,
 };
 
 use crate::AppState;
@@ -57,7 +57,9 @@ impl Reply {
 }
 
 fn text(message: &ServerMessage) -> Message {
-    Message::Text(Utf8Bytes::from(serde_json::to_string(message).unwrap_or_default()))
+    Message::Text(Utf8Bytes::from(
+        serde_json::to_string(message).unwrap_or_default(),
+    ))
 }
 
 fn error_message(reply: Reply) -> ServerMessage {
@@ -74,12 +76,15 @@ fn parse(message: Message) -> Result<Option<ClientMessage>, Reply> {
             if body.len() > MAX_MESSAGE_BYTES {
                 return Err(Reply::new(
                     ErrorCode::TooLarge,
-                    format!("message of {} bytes exceeds the limit of {MAX_MESSAGE_BYTES}", body.len()),
+                    format!(
+                        "message of {} bytes exceeds the limit of {MAX_MESSAGE_BYTES}",
+                        body.len()
+                    ),
                 ));
             }
-            serde_json::from_str(body.as_str())
-                .map(Some)
-                .map_err(|e| Reply::new(ErrorCode::BadMessage, format!("cannot parse message: {e}")))
+            serde_json::from_str(body.as_str()).map(Some).map_err(|e| {
+                Reply::new(ErrorCode::BadMessage, format!("cannot parse message: {e}"))
+            })
         }
         Message::Binary(_) => Err(Reply::new(
             ErrorCode::BadMessage,
@@ -190,7 +195,10 @@ struct OpenSession {
     welcome: ServerMessage,
 }
 
-async fn load_dataset(state: &Arc<AppState>, name: &str) -> Result<Arc<voxlight_volumes::Volume>, Reply> {
+async fn load_dataset(
+    state: &Arc<AppState>,
+    name: &str,
+) -> Result<Arc<voxlight_volumes::Volume>, Reply> {
     if !state.catalog.contains(name) {
         return Err(Reply::new(
             ErrorCode::UnknownDataset,
@@ -212,7 +220,10 @@ fn check_technique(state: &AppState, name: &str) -> Result<(), Reply> {
         let offered: Vec<&str> = state.techniques.iter().map(|t| t.name.as_str()).collect();
         Err(Reply::new(
             ErrorCode::UnknownTechnique,
-            format!("unknown technique `{name}`; offered: {}", offered.join(", ")),
+            format!(
+                "unknown technique `{name}`; offered: {}",
+                offered.join(", ")
+            ),
         ))
     }
 }
@@ -249,7 +260,7 @@ async fn open_session(state: &Arc<AppState>, hello: ClientMessage) -> Result<Ope
     let volume = load_dataset(state, &dataset).await?;
     let scene = Scene {
         tf: crate::datasets::default_tf(&volume),
-        lights: default_lights(),
+        lights: crate::datasets::default_lights_for(&volume),
         params: RenderParams::default(),
         viewport,
         target_iterations: DEFAULT_ITERATIONS,
@@ -288,7 +299,10 @@ async fn open_session(state: &Arc<AppState>, hello: ClientMessage) -> Result<Ope
         session: format!("{:016x}", core.id),
         server_version: env!("CARGO_PKG_VERSION").to_owned(),
         adapter: state.adapter.clone(),
-        dataset: state.catalog.info(&dataset).ok_or_else(|| Reply::new(ErrorCode::Internal, "dataset vanished"))?,
+        dataset: state
+            .catalog
+            .info(&dataset)
+            .ok_or_else(|| Reply::new(ErrorCode::Internal, "dataset vanished"))?,
         techniques: state.techniques.clone(),
         state: core.state(DEFAULT_JPEG_QUALITY),
     };
@@ -321,7 +335,9 @@ async fn read_loop(
             }
         };
         let result = match parse(message) {
-            Ok(Some(message)) => handle_message(state, &mut core, message, &outbox, &jpeg_quality).await,
+            Ok(Some(message)) => {
+                handle_message(state, &mut core, message, &outbox, &jpeg_quality).await
+            }
             Ok(None) => Ok(()),
             Err(reply) => Err(reply),
         };
@@ -344,7 +360,10 @@ async fn handle_message(
     let mut scene = core.scene.clone();
     let change = match message {
         ClientMessage::Hello { .. } => {
-            return Err(Reply::new(ErrorCode::NotReady, "this connection already said hello"));
+            return Err(Reply::new(
+                ErrorCode::NotReady,
+                "this connection already said hello",
+            ));
         }
         ClientMessage::Camera(camera) => {
             CameraBasis::new(&camera).map_err(Reply::bad)?;
@@ -388,7 +407,9 @@ async fn handle_message(
         } => {
             if let Some(q) = quality {
                 if !(1..=100).contains(&q) {
-                    return Err(Reply::bad(format!("jpeg_quality must be in 1..=100, got {q}")));
+                    return Err(Reply::bad(format!(
+                        "jpeg_quality must be in 1..=100, got {q}"
+                    )));
                 }
                 jpeg_quality.store(q, Ordering::Relaxed);
             }
@@ -398,7 +419,11 @@ async fn handle_message(
                     scene.target_iterations = n;
                     Change::Iterations
                 }
-                Some(n) => return Err(Reply::bad(format!("iterations must be in 1..=65536, got {n}"))),
+                Some(n) => {
+                    return Err(Reply::bad(format!(
+                        "iterations must be in 1..=65536, got {n}"
+                    )));
+                }
             }
         }
         ClientMessage::Technique { name } => {
@@ -410,7 +435,9 @@ async fn handle_message(
         }
         ClientMessage::Dataset { name } => {
             let volume = load_dataset(state, &name).await?;
+            // A new dataset is a new scene: its own default TF and lights.
             scene.tf = crate::datasets::default_tf(&volume);
+            scene.lights = crate::datasets::default_lights_for(&volume);
             core.version += 1;
             rebuild(state, core, Some(volume), core.technique.clone(), scene).await?;
             core.dataset = name.clone();
@@ -419,7 +446,9 @@ async fn handle_message(
                 .info(&name)
                 .ok_or_else(|| Reply::new(ErrorCode::Internal, "dataset vanished"))?;
             let state = core.state(jpeg_quality.load(Ordering::Relaxed));
-            let _ = outbox.send(ServerMessage::DatasetLoaded { dataset, state }).await;
+            let _ = outbox
+                .send(ServerMessage::DatasetLoaded { dataset, state })
+                .await;
             return Ok(());
         }
     };
@@ -534,13 +563,23 @@ async fn write_loop(
 }
 
 /// Encodes a rendered frame as a binary frame message: PNG once converged, JPEG before.
-fn encode_frame(rendered: &RenderedFrame, seq: u64, quality: u8) -> Result<(Vec<u8>, Stats), crate::encode::EncodeError> {
+fn encode_frame(
+    rendered: &RenderedFrame,
+    seq: u64,
+    quality: u8,
+) -> Result<(Vec<u8>, Stats), crate::encode::EncodeError> {
     let started = Instant::now();
     let frame = &rendered.frame;
     let (image, format) = if frame.converged {
-        (crate::encode::png(&frame.rgba, frame.width, frame.height)?, FrameFormat::Png)
+        (
+            crate::encode::png(&frame.rgba, frame.width, frame.height)?,
+            FrameFormat::Png,
+        )
     } else {
-        (crate::encode::jpeg(&frame.rgba, frame.width, frame.height, quality)?, FrameFormat::Jpeg)
+        (
+            crate::encode::jpeg(&frame.rgba, frame.width, frame.height, quality)?,
+            FrameFormat::Jpeg,
+        )
     };
     let meta = FrameMeta {
         seq,

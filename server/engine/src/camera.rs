@@ -52,10 +52,13 @@ impl CameraBasis {
             return Err("camera has a non-finite coordinate".into());
         }
         if !(camera.fov_deg > 0.0 && camera.fov_deg < 179.0) {
-            return Err(format!("fov_deg must be in (0, 179), got {}", camera.fov_deg));
+            return Err(format!(
+                "fov_deg must be in (0, 179), got {}",
+                camera.fov_deg
+            ));
         }
-        let forward = normalize(sub(camera.target, camera.eye))
-            .ok_or("camera eye and target coincide")?;
+        let forward =
+            normalize(sub(camera.target, camera.eye)).ok_or("camera eye and target coincide")?;
         let right = normalize(cross(forward, camera.up))
             .ok_or("camera up is zero or parallel to the view direction")?;
         let up = cross(right, forward);
@@ -105,11 +108,15 @@ mod tests {
         let mut cam = Camera::default();
         cam.target = cam.eye;
         assert!(CameraBasis::new(&cam).is_err());
-        let mut cam = Camera::default();
-        cam.up = [0.0, 1.0, 0.0];
+        let cam = Camera {
+            up: [0.0, 1.0, 0.0],
+            ..Camera::default()
+        };
         assert!(CameraBasis::new(&cam).is_err());
-        let mut cam = Camera::default();
-        cam.fov_deg = 0.0;
+        let cam = Camera {
+            fov_deg: 0.0,
+            ..Camera::default()
+        };
         assert!(CameraBasis::new(&cam).is_err());
         let mut cam = Camera::default();
         cam.eye[0] = f32::NAN;

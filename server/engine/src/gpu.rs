@@ -30,11 +30,16 @@ impl Gpu {
     /// Picks a discrete GPU when present, else the best other adapter (lavapipe on CPU-only
     /// machines), and opens a device on it.
     pub fn new() -> Result<Self, EngineError> {
-        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        let instance =
+            wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
         let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()));
         let adapter = adapters
             .into_iter()
-            .filter(|a| a.get_downlevel_capabilities().flags.contains(wgpu::DownlevelFlags::COMPUTE_SHADERS))
+            .filter(|a| {
+                a.get_downlevel_capabilities()
+                    .flags
+                    .contains(wgpu::DownlevelFlags::COMPUTE_SHADERS)
+            })
             .max_by_key(|a| adapter_rank(&a.get_info()))
             .ok_or_else(|| EngineError::NoAdapter(NO_ADAPTER_HELP.to_owned()))?;
         let info = adapter.get_info();
@@ -111,7 +116,10 @@ impl Gpu {
 
     /// A one-line description of the adapter, e.g. for `/healthz` and `welcome`.
     pub fn adapter_name(&self) -> String {
-        format!("{} ({:?}, {})", self.info.name, self.info.backend, self.info.driver_info)
+        format!(
+            "{} ({:?}, {})",
+            self.info.name, self.info.backend, self.info.driver_info
+        )
     }
 
     /// True when the adapter is a CPU rasterizer such as lavapipe/llvmpipe.
@@ -153,7 +161,9 @@ impl Gpu {
         });
         let mut encoder = self
             .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("readback") });
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("readback"),
+            });
         encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, size);
         self.queue.submit([encoder.finish()]);
         let (sender, receiver) = std::sync::mpsc::channel();

@@ -79,7 +79,10 @@ impl Engine {
     }
 
     /// Uploads a volume as a 3D texture (shared by every session that views it).
-    pub fn upload_volume(&self, volume: &voxlight_volumes::Volume) -> Result<Arc<GpuVolume>, EngineError> {
+    pub fn upload_volume(
+        &self,
+        volume: &voxlight_volumes::Volume,
+    ) -> Result<Arc<GpuVolume>, EngineError> {
         GpuVolume::upload(&self.gpu, volume).map(Arc::new)
     }
 

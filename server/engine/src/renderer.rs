@@ -38,14 +38,20 @@ pub fn session_bytes(width: u32, height: u32) -> u64 {
 }
 
 impl Renderer {
-    pub fn new(engine: &Engine, technique: &str, volume: Arc<GpuVolume>, scene: &Scene) -> Result<Self, EngineError> {
+    pub fn new(
+        engine: &Engine,
+        technique: &str,
+        volume: Arc<GpuVolume>,
+        scene: &Scene,
+    ) -> Result<Self, EngineError> {
         scene.validate().map_err(EngineError::InvalidScene)?;
         check_budget(engine, scene)?;
         let technique: Box<dyn Technique> = match technique {
             "raymarch" => Box::new(Raymarch::new(engine, volume.clone(), scene)?),
             other => return Err(EngineError::UnknownTechnique(other.to_owned())),
         };
-        let (tone_params, rgba, tone_bind_group) = tone_resources(engine, technique.output(), scene);
+        let (tone_params, rgba, tone_bind_group) =
+            tone_resources(engine, technique.output(), scene);
         engine.gpu.check()?;
         Ok(Self {
             technique,
@@ -67,7 +73,12 @@ impl Renderer {
     }
 
     /// Applies an edit; `scene` already holds the new state.
-    pub fn apply(&mut self, engine: &Engine, scene: &Scene, change: &Change) -> Result<(), EngineError> {
+    pub fn apply(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        change: &Change,
+    ) -> Result<(), EngineError> {
         if *change == Change::Viewport {
             check_budget(engine, scene)?;
         }
@@ -84,7 +95,12 @@ impl Renderer {
     }
 
     /// Progressive work for about `budget`.
-    pub fn step(&mut self, engine: &Engine, scene: &Scene, budget: Duration) -> Result<StepReport, EngineError> {
+    pub fn step(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        budget: Duration,
+    ) -> Result<StepReport, EngineError> {
         let report = self.technique.step(engine, scene, budget)?;
         engine.gpu.check()?;
         Ok(report)
@@ -112,12 +128,20 @@ impl Renderer {
             exposure: scene.params.exposure,
             pad0: 0,
         };
-        engine.gpu.queue.write_buffer(&self.tone_params, 0, bytemuck::bytes_of(&params));
-        let mut encoder = engine
+        engine
             .gpu
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("tonemap") });
-        engine.tonemap.encode(&mut encoder, &self.tone_bind_group, self.width, self.height);
+            .queue
+            .write_buffer(&self.tone_params, 0, bytemuck::bytes_of(&params));
+        let mut encoder =
+            engine
+                .gpu
+                .device
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("tonemap"),
+                });
+        engine
+            .tonemap
+            .encode(&mut encoder, &self.tone_bind_group, self.width, self.height);
         engine.gpu.queue.submit([encoder.finish()]);
         let rgba = engine.gpu.read_buffer(&self.rgba)?;
         Ok(Frame {
@@ -174,6 +198,8 @@ fn tone_resources(
         usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
         mapped_at_creation: false,
     });
-    let bind_group = engine.tonemap.bind_group(&engine.gpu, &params, accum, &rgba);
+    let bind_group = engine
+        .tonemap
+        .bind_group(&engine.gpu, &params, accum, &rgba);
     (params, rgba, bind_group)
 }

@@ -1,7 +1,8 @@
 //! What a session renders (the physical model of DESIGN.md) and how it changes.
 
 use voxlight_protocol::{
-    Camera, Light, MAX_LIGHTS, MAX_VIEWPORT_EDGE, RenderParams, TransferFunction, Viewport, default_lights,
+    Camera, Light, MAX_LIGHTS, MAX_VIEWPORT_EDGE, RenderParams, TransferFunction, Viewport,
+    default_lights,
 };
 
 use crate::camera::CameraBasis;
@@ -39,7 +40,10 @@ impl Default for Scene {
 #[derive(Debug, Clone, PartialEq)]
 pub enum Change {
     Camera,
-    Tf { old: TransferFunction, query_historygram: u64 },
+    Tf {
+        old: TransferFunction,
+        query_historygram: u64,
+    },
     Lights,
     Params,
     Viewport,
@@ -70,10 +74,18 @@ pub fn validate_lights(lights: &[Light]) -> Result<(), String> {
     }
     for (i, light) in lights.iter().enumerate() {
         let ok = match light {
-            Light::Directional { direction, irradiance } => {
-                finite3(direction) && crate::camera::length(*direction) > 1e-6 && non_negative3(irradiance)
+            Light::Directional {
+                direction,
+                irradiance,
+            } => {
+                finite3(direction)
+                    && crate::camera::length(*direction) > 1e-6
+                    && non_negative3(irradiance)
             }
-            Light::Point { position, intensity } => finite3(position) && non_negative3(intensity),
+            Light::Point {
+                position,
+                intensity,
+            } => finite3(position) && non_negative3(intensity),
             Light::Environment { radiance } => non_negative3(radiance),
         };
         if !ok {
@@ -87,13 +99,19 @@ pub fn validate_lights(lights: &[Light]) -> Result<(), String> {
 
 pub fn validate_params(params: &RenderParams) -> Result<(), String> {
     if !(params.density_scale.is_finite() && (0.0..=1e5).contains(&params.density_scale)) {
-        return Err(format!("density_scale must be in [0, 100000], got {}", params.density_scale));
+        return Err(format!(
+            "density_scale must be in [0, 100000], got {}",
+            params.density_scale
+        ));
     }
     if !(params.g.is_finite() && params.g > -0.99 && params.g < 0.99) {
         return Err(format!("g must be in (-0.99, 0.99), got {}", params.g));
     }
     if !(params.exposure.is_finite() && params.exposure > 0.0 && params.exposure <= 1e4) {
-        return Err(format!("exposure must be in (0, 10000], got {}", params.exposure));
+        return Err(format!(
+            "exposure must be in (0, 10000], got {}",
+            params.exposure
+        ));
     }
     Ok(())
 }
@@ -131,14 +149,24 @@ mod tests {
 
     #[test]
     fn bad_parts_are_named() {
-        let mut scene = Scene::default();
-        scene.viewport = Viewport { width: 0, height: 10 };
+        let scene = Scene {
+            viewport: Viewport {
+                width: 0,
+                height: 10,
+            },
+            ..Scene::default()
+        };
         assert!(scene.validate().unwrap_err().contains("viewport"));
         let mut scene = Scene::default();
         scene.params.g = 1.0;
         assert!(scene.validate().unwrap_err().contains("g must"));
-        let mut scene = Scene::default();
-        scene.lights = vec![Light::Directional { direction: [0.0; 3], irradiance: [1.0; 3] }];
+        let scene = Scene {
+            lights: vec![Light::Directional {
+                direction: [0.0; 3],
+                irradiance: [1.0; 3],
+            }],
+            ..Scene::default()
+        };
         assert!(scene.validate().unwrap_err().contains("light 0"));
     }
 }

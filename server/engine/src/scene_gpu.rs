@@ -51,13 +51,19 @@ pub fn gpu_lights(lights: &[Light]) -> (Vec<GpuLight>, [f32; 3]) {
     let mut env = [0.0f32; 3];
     for light in lights {
         match *light {
-            Light::Directional { direction, irradiance } => out.push(GpuLight {
+            Light::Directional {
+                direction,
+                irradiance,
+            } => out.push(GpuLight {
                 vector: crate::camera::normalize(direction).unwrap_or([0.0, 0.0, -1.0]),
                 kind: LIGHT_DIRECTIONAL,
                 color: irradiance,
                 pad0: 0.0,
             }),
-            Light::Point { position, intensity } => out.push(GpuLight {
+            Light::Point {
+                position,
+                intensity,
+            } => out.push(GpuLight {
                 vector: position,
                 kind: LIGHT_POINT,
                 color: intensity,

@@ -28,9 +28,15 @@ pub struct TechniqueStats {
 pub trait Technique: Send {
     fn name(&self) -> &'static str;
     /// Reacts to an edit; `scene` already holds the new state.
-    fn apply(&mut self, engine: &Engine, scene: &Scene, change: &Change) -> Result<(), EngineError>;
+    fn apply(&mut self, engine: &Engine, scene: &Scene, change: &Change)
+    -> Result<(), EngineError>;
     /// Progressive work for about `budget` (at least one iteration unless converged).
-    fn step(&mut self, engine: &Engine, scene: &Scene, budget: Duration) -> Result<StepReport, EngineError>;
+    fn step(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        budget: Duration,
+    ) -> Result<StepReport, EngineError>;
     /// The HDR estimate: width × height `vec4<f32>`, rgb = sum of samples, w = sample count.
     fn output(&self) -> &wgpu::Buffer;
     fn iteration(&self) -> u32;

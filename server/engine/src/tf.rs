@@ -20,13 +20,22 @@ pub fn validate(tf: &TransferFunction) -> Result<(), String> {
     for (i, p) in tf.points.iter().enumerate() {
         let in_unit = |x: f32| x.is_finite() && (0.0..=1.0).contains(&x);
         if !in_unit(p.value) {
-            return Err(format!("tf point {i}: value must be in [0, 1], got {}", p.value));
+            return Err(format!(
+                "tf point {i}: value must be in [0, 1], got {}",
+                p.value
+            ));
         }
         if !in_unit(p.opacity) {
-            return Err(format!("tf point {i}: opacity must be in [0, 1], got {}", p.opacity));
+            return Err(format!(
+                "tf point {i}: opacity must be in [0, 1], got {}",
+                p.opacity
+            ));
         }
         if !p.color.iter().all(|&c| in_unit(c)) {
-            return Err(format!("tf point {i}: color components must be in [0, 1], got {:?}", p.color));
+            return Err(format!(
+                "tf point {i}: color components must be in [0, 1], got {:?}",
+                p.color
+            ));
         }
     }
     Ok(())
@@ -54,7 +63,11 @@ fn evaluate_sorted(sorted: &[&TfPoint], v: f32) -> [f32; 4] {
     let upper = sorted.partition_point(|p| p.value <= v);
     let (a, b) = (sorted[upper - 1], sorted[upper]);
     let span = b.value - a.value;
-    let f = if span > 0.0 { (v - a.value) / span } else { 1.0 };
+    let f = if span > 0.0 {
+        (v - a.value) / span
+    } else {
+        1.0
+    };
     let (ca, cb) = (rgba(a), rgba(b));
     std::array::from_fn(|k| ca[k] + (cb[k] - ca[k]) * f)
 }
@@ -98,12 +111,19 @@ mod tests {
     use super::*;
 
     fn point(value: f32, color: [f32; 3], opacity: f32) -> TfPoint {
-        TfPoint { value, color, opacity }
+        TfPoint {
+            value,
+            color,
+            opacity,
+        }
     }
 
     #[test]
     fn piecewise_linear_and_constant_beyond_ends() {
-        let pts = [point(0.75, [0.0, 1.0, 0.0], 1.0), point(0.25, [1.0, 0.0, 0.0], 0.0)];
+        let pts = [
+            point(0.75, [0.0, 1.0, 0.0], 1.0),
+            point(0.25, [1.0, 0.0, 0.0], 0.0),
+        ];
         assert_eq!(evaluate(&pts, 0.0), [1.0, 0.0, 0.0, 0.0]);
         assert_eq!(evaluate(&pts, 1.0), [0.0, 1.0, 0.0, 1.0]);
         let mid = evaluate(&pts, 0.5);
@@ -113,7 +133,12 @@ mod tests {
 
     #[test]
     fn lut_matches_evaluate_at_entries() {
-        let tf = TransferFunction { points: vec![point(0.1, [0.2, 0.3, 0.4], 0.0), point(0.9, [1.0, 1.0, 1.0], 0.8)] };
+        let tf = TransferFunction {
+            points: vec![
+                point(0.1, [0.2, 0.3, 0.4], 0.0),
+                point(0.9, [1.0, 1.0, 1.0], 0.8),
+            ],
+        };
         let lut = bake(&tf);
         assert_eq!(lut.len(), TF_LUT_SIZE);
         for i in [0, 100, 511, 1023] {
@@ -125,7 +150,12 @@ mod tests {
     #[test]
     fn query_historygram_marks_only_changed_bins() {
         let base = TransferFunction {
-            points: vec![point(0.0, [1.0; 3], 0.0), point(0.5, [1.0; 3], 0.0), point(0.6, [1.0; 3], 1.0), point(1.0, [1.0; 3], 1.0)],
+            points: vec![
+                point(0.0, [1.0; 3], 0.0),
+                point(0.5, [1.0; 3], 0.0),
+                point(0.6, [1.0; 3], 1.0),
+                point(1.0, [1.0; 3], 1.0),
+            ],
         };
         assert_eq!(query_historygram(&base, &base), 0);
         let mut recoloured = base.clone();
@@ -135,14 +165,37 @@ mod tests {
         assert_ne!(mask, 0);
         assert_eq!(mask & 1, 0, "bin 0 (v < 1/63) did not change");
         assert_ne!(mask & (1 << 63), 0, "v = 1 changed");
-        assert!(mask.count_ones() < 40, "only the upper half changed: {mask:064b}");
+        assert!(
+            mask.count_ones() < 40,
+            "only the upper half changed: {mask:064b}"
+        );
     }
 
     #[test]
     fn validation_rejects_out_of_range() {
-        assert!(validate(&TransferFunction { points: vec![point(1.5, [0.0; 3], 0.0)] }).is_err());
-        assert!(validate(&TransferFunction { points: vec![point(0.5, [0.0; 3], f32::NAN)] }).is_err());
-        assert!(validate(&TransferFunction { points: vec![point(0.5, [2.0, 0.0, 0.0], 0.5)] }).is_err());
-        assert!(validate(&TransferFunction { points: vec![point(0.5, [0.1; 3], 0.5)] }).is_ok());
+        assert!(
+            validate(&TransferFunction {
+                points: vec![point(1.5, [0.0; 3], 0.0)]
+            })
+            .is_err()
+        );
+        assert!(
+            validate(&TransferFunction {
+                points: vec![point(0.5, [0.0; 3], f32::NAN)]
+            })
+            .is_err()
+        );
+        assert!(
+            validate(&TransferFunction {
+                points: vec![point(0.5, [2.0, 0.0, 0.0], 0.5)]
+            })
+            .is_err()
+        );
+        assert!(
+            validate(&TransferFunction {
+                points: vec![point(0.5, [0.1; 3], 0.5)]
+            })
+            .is_ok()
+        );
     }
 }

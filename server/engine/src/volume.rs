@@ -20,7 +20,11 @@ const SLAB_SLICES: u32 = 32;
 impl GpuVolume {
     /// Bytes a volume of these dimensions needs on this GPU.
     pub fn bytes_needed(gpu: &Gpu, dims: [u32; 3]) -> u64 {
-        let texel = if gpu.volume_format == wgpu::TextureFormat::R16Unorm { 2 } else { 4 };
+        let texel = if gpu.volume_format == wgpu::TextureFormat::R16Unorm {
+            2
+        } else {
+            4
+        };
         dims.iter().map(|&d| d as u64).product::<u64>() * texel
     }
 
@@ -43,7 +47,11 @@ impl GpuVolume {
         }
         let texture = gpu.device.create_texture(&wgpu::TextureDescriptor {
             label: Some(&format!("volume {}", volume.name)),
-            size: wgpu::Extent3d { width: dims[0], height: dims[1], depth_or_array_layers: dims[2] },
+            size: wgpu::Extent3d {
+                width: dims[0],
+                height: dims[1],
+                depth_or_array_layers: dims[2],
+            },
             mip_level_count: 1,
             sample_count: 1,
             dimension: wgpu::TextureDimension::D3,
@@ -56,12 +64,13 @@ impl GpuVolume {
         while z < dims[2] {
             let depth = SLAB_SLICES.min(dims[2] - z);
             let samples = &volume.data[z as usize * slice_len..(z + depth) as usize * slice_len];
-            let (bytes, texel): (Vec<u8>, u32) = if gpu.volume_format == wgpu::TextureFormat::R16Unorm {
-                (bytemuck::cast_slice(samples).to_vec(), 2)
-            } else {
-                let floats: Vec<f32> = samples.iter().map(|&q| q as f32 / 65535.0).collect();
-                (bytemuck::cast_slice(&floats).to_vec(), 4)
-            };
+            let (bytes, texel): (Vec<u8>, u32) =
+                if gpu.volume_format == wgpu::TextureFormat::R16Unorm {
+                    (bytemuck::cast_slice(samples).to_vec(), 2)
+                } else {
+                    let floats: Vec<f32> = samples.iter().map(|&q| q as f32 / 65535.0).collect();
+                    (bytemuck::cast_slice(&floats).to_vec(), 4)
+                };
             gpu.queue.write_texture(
                 wgpu::TexelCopyTextureInfo {
                     texture: &texture,
@@ -75,7 +84,11 @@ impl GpuVolume {
                     bytes_per_row: Some(dims[0] * texel),
                     rows_per_image: Some(dims[1]),
                 },
-                wgpu::Extent3d { width: dims[0], height: dims[1], depth_or_array_layers: depth },
+                wgpu::Extent3d {
+                    width: dims[0],
+                    height: dims[1],
+                    depth_or_array_layers: depth,
+                },
             );
             z += depth;
         }

@@ -12,7 +12,9 @@ use voxlight_volumes::Volume;
 fn engine() -> &'static Engine {
     static ENGINE: OnceLock<Engine> = OnceLock::new();
     ENGINE.get_or_init(|| {
-        Engine::new().unwrap_or_else(|e| panic!("GPU tests need an adapter (lavapipe: apt-get install mesa-vulkan-drivers): {e}"))
+        Engine::new().unwrap_or_else(|e| {
+            panic!("GPU tests need an adapter (lavapipe: apt-get install mesa-vulkan-drivers): {e}")
+        })
     })
 }
 
@@ -26,19 +28,40 @@ fn sphere(size: u32) -> (Volume, Arc<GpuVolume>) {
 fn ramp_tf(albedo: f32) -> TransferFunction {
     TransferFunction {
         points: vec![
-            TfPoint { value: 0.0, color: [albedo; 3], opacity: 0.0 },
-            TfPoint { value: 1.0, color: [albedo; 3], opacity: 1.0 },
+            TfPoint {
+                value: 0.0,
+                color: [albedo; 3],
+                opacity: 0.0,
+            },
+            TfPoint {
+                value: 1.0,
+                color: [albedo; 3],
+                opacity: 1.0,
+            },
         ],
     }
 }
 
-fn scene(tf: TransferFunction, lights: Vec<Light>, density_scale: f32, size: u32, iterations: u32) -> Scene {
+fn scene(
+    tf: TransferFunction,
+    lights: Vec<Light>,
+    density_scale: f32,
+    size: u32,
+    iterations: u32,
+) -> Scene {
     Scene {
         camera: Camera::default(),
         tf,
         lights,
-        params: RenderParams { density_scale, g: 0.0, exposure: 1.0 },
-        viewport: Viewport { width: size, height: size },
+        params: RenderParams {
+            density_scale,
+            g: 0.0,
+            exposure: 1.0,
+        },
+        viewport: Viewport {
+            width: size,
+            height: size,
+        },
         seed: 7,
         target_iterations: iterations,
     }
@@ -46,9 +69,13 @@ fn scene(tf: TransferFunction, lights: Vec<Light>, density_scale: f32, size: u32
 
 fn render(volume: Arc<GpuVolume>, scene: &Scene) -> (Renderer, Vec<[f32; 3]>) {
     let engine = engine();
-    let mut renderer = engine.create_renderer("raymarch", volume, scene).expect("renderer");
+    let mut renderer = engine
+        .create_renderer("raymarch", volume, scene)
+        .expect("renderer");
     while !renderer.converged(scene) {
-        renderer.step(engine, scene, Duration::from_secs(10)).expect("step");
+        renderer
+            .step(engine, scene, Duration::from_secs(10))
+            .expect("step");
     }
     let hdr = renderer.read_hdr(engine).expect("hdr");
     (renderer, hdr)
@@ -78,13 +105,23 @@ fn trilinear(volume: &Volume, u: [f32; 3]) -> f32 {
 }
 
 /// Optical depth ∫ density·v along the ray through pixel (x, y)'s centre, by fine quadrature.
-fn reference_optical_depth(volume: &Volume, camera: &Camera, size: u32, x: f32, y: f32, density: f32) -> f32 {
+fn reference_optical_depth(
+    volume: &Volume,
+    camera: &Camera,
+    size: u32,
+    x: f32,
+    y: f32,
+    density: f32,
+) -> f32 {
     let basis = CameraBasis::new(camera).unwrap();
     let dir = basis.ray_dir(x, y, size, size);
     let ext = volume.world_extent();
     let (mut t0, mut t1) = (0.0f32, f32::INFINITY);
     for k in 0..3 {
-        let (a, b) = ((-ext[k] / 2.0 - basis.eye[k]) / dir[k], (ext[k] / 2.0 - basis.eye[k]) / dir[k]);
+        let (a, b) = (
+            (-ext[k] / 2.0 - basis.eye[k]) / dir[k],
+            (ext[k] / 2.0 - basis.eye[k]) / dir[k],
+        );
         t0 = t0.max(a.min(b));
         t1 = t1.min(a.max(b));
     }
@@ -96,7 +133,8 @@ fn reference_optical_depth(volume: &Volume, camera: &Camera, size: u32, x: f32, 
     let mut tau = 0.0f64;
     for i in 0..n {
         let t = t0 + (i as f32 + 0.5) * dt;
-        let u: [f32; 3] = std::array::from_fn(|k| (basis.eye[k] + dir[k] * t + ext[k] / 2.0) / ext[k]);
+        let u: [f32; 3] =
+            std::array::from_fn(|k| (basis.eye[k] + dir[k] * t + ext[k] / 2.0) / ext[k]);
         tau += (density * trilinear(volume, u) * dt) as f64;
     }
     tau as f32
@@ -104,7 +142,11 @@ fn reference_optical_depth(volume: &Volume, camera: &Camera, size: u32, x: f32, 
 
 fn srgb_byte(x: f32) -> u8 {
     let x = x.clamp(0.0, 1.0);
-    let s = if x <= 0.0031308 { 12.92 * x } else { 1.055 * x.powf(1.0 / 2.4) - 0.055 };
+    let s = if x <= 0.0031308 {
+        12.92 * x
+    } else {
+        1.055 * x.powf(1.0 / 2.4) - 0.055
+    };
     (s.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
 }
 
@@ -114,7 +156,10 @@ fn empty_tf_shows_exactly_the_environment() {
     let env = [0.2, 0.45, 0.7];
     let lights = vec![
         Light::Environment { radiance: env },
-        Light::Directional { direction: [0.0, 1.0, 0.0], irradiance: [5.0; 3] },
+        Light::Directional {
+            direction: [0.0, 1.0, 0.0],
+            irradiance: [5.0; 3],
+        },
     ];
     let scene = scene(TransferFunction::default(), lights, 50.0, 64, 3);
     let (renderer, hdr) = render(volume, &scene);
@@ -136,7 +181,13 @@ fn absorbing_sphere_matches_beer_lambert() {
     let size = 64;
     let (cpu_volume, volume) = sphere(64);
     let density = 2.0;
-    let scene = scene(ramp_tf(0.0), vec![Light::Environment { radiance: [1.0; 3] }], density, size, 128);
+    let scene = scene(
+        ramp_tf(0.0),
+        vec![Light::Environment { radiance: [1.0; 3] }],
+        density,
+        size,
+        128,
+    );
     let (_, hdr) = render(volume, &scene);
     // Through the centre the chord is the sphere's diameter, 0.8 world units.
     let centre = hdr[(size / 2 * size + size / 2) as usize][0];
@@ -149,7 +200,14 @@ fn absorbing_sphere_matches_beer_lambert() {
     let mut worst = 0.0f32;
     for y in (4..size).step_by(6) {
         for x in (4..size).step_by(6) {
-            let tau = reference_optical_depth(&cpu_volume, &scene.camera, size, x as f32 + 0.5, y as f32 + 0.5, density);
+            let tau = reference_optical_depth(
+                &cpu_volume,
+                &scene.camera,
+                size,
+                x as f32 + 0.5,
+                y as f32 + 0.5,
+                density,
+            );
             let expected = (-tau).exp();
             let got = hdr[(y * size + x) as usize];
             assert_eq!(got[0], got[1]);
@@ -159,7 +217,10 @@ fn absorbing_sphere_matches_beer_lambert() {
             let rel = (got[0] / expected - 1.0).abs();
             if tau > 0.05 && tau < 1.55 {
                 if rel > worst {
-                    eprintln!("pixel ({x}, {y}): tau {tau:.4} got {:.5} expected {expected:.5} rel {rel:.4}", got[0]);
+                    eprintln!(
+                        "pixel ({x}, {y}): tau {tau:.4} got {:.5} expected {expected:.5} rel {rel:.4}",
+                        got[0]
+                    );
                 }
                 worst = worst.max(rel);
             }
@@ -175,7 +236,13 @@ fn thin_white_medium_in_uniform_light_is_nearly_the_furnace() {
     let size = 48;
     let (_, volume) = sphere(48);
     let density = 0.125;
-    let scene = scene(ramp_tf(1.0), vec![Light::Environment { radiance: [1.0; 3] }], density, size, 64);
+    let scene = scene(
+        ramp_tf(1.0),
+        vec![Light::Environment { radiance: [1.0; 3] }],
+        density,
+        size,
+        64,
+    );
     let (_, hdr) = render(volume, &scene);
     let mean: f32 = hdr.iter().map(|p| p[1]).sum::<f32>() / hdr.len() as f32;
     assert!((mean - 1.0).abs() < 0.01, "mean radiance {mean}");
@@ -188,7 +255,10 @@ fn directional_light_lights_the_near_side() {
     // Light travels along +x: the −x side of a scattering sphere is lit, the +x side shadowed.
     let size = 48;
     let (_, volume) = sphere(48);
-    let lights = vec![Light::Directional { direction: [1.0, 0.0, 0.0], irradiance: [4.0; 3] }];
+    let lights = vec![Light::Directional {
+        direction: [1.0, 0.0, 0.0],
+        irradiance: [4.0; 3],
+    }];
     let scene = scene(ramp_tf(0.9), lights, 30.0, size, 8);
     let (_, hdr) = render(volume, &scene);
     let row = size / 2;
@@ -197,7 +267,10 @@ fn directional_light_lights_the_near_side() {
     let corner = hdr[0][0];
     assert_eq!(corner, 0.0, "no environment: the background is black");
     assert!(left > 0.05, "lit side {left}");
-    assert!(left > 5.0 * right, "lit side {left} vs shadowed side {right}");
+    assert!(
+        left > 5.0 * right,
+        "lit side {left} vs shadowed side {right}"
+    );
 }
 
 #[test]
@@ -206,12 +279,18 @@ fn same_seed_same_picture_other_seed_other_noise() {
     let (_, volume) = sphere(32);
     let lights = vec![
         Light::Environment { radiance: [0.5; 3] },
-        Light::Point { position: [0.0, -1.0, 1.0], intensity: [2.0; 3] },
+        Light::Point {
+            position: [0.0, -1.0, 1.0],
+            intensity: [2.0; 3],
+        },
     ];
     let a = scene(ramp_tf(0.8), lights, 20.0, size, 4);
     let (_, first) = render(volume.clone(), &a);
     let (_, second) = render(volume.clone(), &a);
-    assert_eq!(first, second, "counter-based randomness must make renders reproducible");
+    assert_eq!(
+        first, second,
+        "counter-based randomness must make renders reproducible"
+    );
     let mut b = a.clone();
     b.seed += 1;
     let (_, other) = render(volume, &b);
@@ -222,10 +301,19 @@ fn same_seed_same_picture_other_seed_other_noise() {
 fn oversized_viewport_is_refused() {
     let (_, volume) = sphere(16);
     let mut s = scene(ramp_tf(1.0), vec![], 1.0, 64, 1);
-    s.viewport = Viewport { width: 5000, height: 64 };
-    let err = engine().create_renderer("raymarch", volume.clone(), &s).err().expect("must fail");
+    s.viewport = Viewport {
+        width: 5000,
+        height: 64,
+    };
+    let err = engine()
+        .create_renderer("raymarch", volume.clone(), &s)
+        .err()
+        .expect("must fail");
     assert!(err.to_string().contains("viewport"), "{err}");
     let s = scene(ramp_tf(1.0), vec![], 1.0, 64, 1);
-    let err = engine().create_renderer("nope", volume, &s).err().expect("must fail");
+    let err = engine()
+        .create_renderer("nope", volume, &s)
+        .err()
+        .expect("must fail");
     assert!(err.to_string().contains("nope"));
 }

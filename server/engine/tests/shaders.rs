@@ -10,9 +10,12 @@ use voxlight_engine::shaders;
 fn parse_and_validate(name: &str, source: &str) -> naga::Module {
     let module = naga::front::wgsl::parse_str(source)
         .unwrap_or_else(|e| panic!("{name}: WGSL parse error:\n{}", e.emit_to_string(source)));
-    naga::valid::Validator::new(naga::valid::ValidationFlags::all(), naga::valid::Capabilities::all())
-        .validate(&module)
-        .unwrap_or_else(|e| panic!("{name}: validation error:\n{}", e.emit_to_string(source)));
+    naga::valid::Validator::new(
+        naga::valid::ValidationFlags::all(),
+        naga::valid::Capabilities::all(),
+    )
+    .validate(&module)
+    .unwrap_or_else(|e| panic!("{name}: validation error:\n{}", e.emit_to_string(source)));
     module
 }
 
@@ -40,11 +43,20 @@ fn every_wgsl_file_is_part_of_a_validated_shader() {
             count += 1;
         }
     }
-    assert!(count >= 5, "found only {count} WGSL files in {}", dir.display());
+    assert!(
+        count >= 5,
+        "found only {count} WGSL files in {}",
+        dir.display()
+    );
 }
 
 /// Asserts that the WGSL struct `name` has the Rust struct's size and field offsets.
-fn assert_layout(module: &naga::Module, name: &str, rust_size: usize, rust_fields: &[(&str, usize)]) {
+fn assert_layout(
+    module: &naga::Module,
+    name: &str,
+    rust_size: usize,
+    rust_fields: &[(&str, usize)],
+) {
     let (_, ty) = module
         .types
         .iter()
@@ -53,11 +65,26 @@ fn assert_layout(module: &naga::Module, name: &str, rust_size: usize, rust_field
     let naga::TypeInner::Struct { members, span } = &ty.inner else {
         panic!("{name} is not a struct");
     };
-    assert_eq!(*span as usize, rust_size, "{name}: WGSL size {span} != Rust size {rust_size}");
-    assert_eq!(members.len(), rust_fields.len(), "{name}: field count differs");
+    assert_eq!(
+        *span as usize, rust_size,
+        "{name}: WGSL size {span} != Rust size {rust_size}"
+    );
+    assert_eq!(
+        members.len(),
+        rust_fields.len(),
+        "{name}: field count differs"
+    );
     for (member, (field, offset)) in members.iter().zip(rust_fields) {
-        assert_eq!(member.name.as_deref(), Some(*field), "{name}: field order/name differs");
-        assert_eq!(member.offset as usize, *offset, "{name}.{field}: WGSL offset {} != Rust {offset}", member.offset);
+        assert_eq!(
+            member.name.as_deref(),
+            Some(*field),
+            "{name}: field order/name differs"
+        );
+        assert_eq!(
+            member.offset as usize, *offset,
+            "{name}.{field}: WGSL offset {} != Rust {offset}",
+            member.offset
+        );
     }
 }
 

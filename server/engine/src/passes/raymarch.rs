@@ -41,16 +41,37 @@ impl RaymarchPass {
             label: Some("raymarch"),
             layout: &self.layout,
             entries: &[
-                wgpu::BindGroupEntry { binding: 0, resource: b.scene.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 1, resource: wgpu::BindingResource::TextureView(b.volume) },
-                wgpu::BindGroupEntry { binding: 2, resource: b.tf_lut.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 3, resource: b.lights.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 4, resource: b.accum.as_entire_binding() },
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: b.scene.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: wgpu::BindingResource::TextureView(b.volume),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: b.tf_lut.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 3,
+                    resource: b.lights.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 4,
+                    resource: b.accum.as_entire_binding(),
+                },
             ],
         })
     }
 
-    pub fn encode(&self, encoder: &mut wgpu::CommandEncoder, bind_group: &wgpu::BindGroup, width: u32, height: u32) {
+    pub fn encode(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        bind_group: &wgpu::BindGroup,
+        width: u32,
+        height: u32,
+    ) {
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("raymarch"),
             timestamp_writes: None,

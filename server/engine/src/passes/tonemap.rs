@@ -26,24 +26,49 @@ impl TonemapPass {
             gpu,
             "tonemap",
             &crate::shaders::tonemap(),
-            &[uniform_entry(0), storage_entry(1, true), storage_entry(2, false)],
+            &[
+                uniform_entry(0),
+                storage_entry(1, true),
+                storage_entry(2, false),
+            ],
         );
         Self { pipeline, layout }
     }
 
-    pub fn bind_group(&self, gpu: &Gpu, params: &wgpu::Buffer, accum: &wgpu::Buffer, rgba: &wgpu::Buffer) -> wgpu::BindGroup {
+    pub fn bind_group(
+        &self,
+        gpu: &Gpu,
+        params: &wgpu::Buffer,
+        accum: &wgpu::Buffer,
+        rgba: &wgpu::Buffer,
+    ) -> wgpu::BindGroup {
         gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("tonemap"),
             layout: &self.layout,
             entries: &[
-                wgpu::BindGroupEntry { binding: 0, resource: params.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 1, resource: accum.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 2, resource: rgba.as_entire_binding() },
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: params.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: accum.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: rgba.as_entire_binding(),
+                },
             ],
         })
     }
 
-    pub fn encode(&self, encoder: &mut wgpu::CommandEncoder, bind_group: &wgpu::BindGroup, width: u32, height: u32) {
+    pub fn encode(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        bind_group: &wgpu::BindGroup,
+        width: u32,
+        height: u32,
+    ) {
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("tonemap"),
             timestamp_writes: None,

@@ -31,7 +31,11 @@ pub fn accum_bytes(width: u32, height: u32) -> u64 {
 }
 
 impl Raymarch {
-    pub fn new(engine: &Engine, volume: Arc<GpuVolume>, scene: &Scene) -> Result<Self, EngineError> {
+    pub fn new(
+        engine: &Engine,
+        volume: Arc<GpuVolume>,
+        scene: &Scene,
+    ) -> Result<Self, EngineError> {
         let device = &engine.gpu.device;
         let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
             device.create_buffer(&wgpu::BufferDescriptor {
@@ -46,7 +50,11 @@ impl Raymarch {
             size_of::<SceneUniforms>() as u64,
             wgpu::BufferUsages::UNIFORM,
         );
-        let tf_lut = buffer("raymarch tf lut", (TF_LUT_SIZE * 16) as u64, wgpu::BufferUsages::STORAGE);
+        let tf_lut = buffer(
+            "raymarch tf lut",
+            (TF_LUT_SIZE * 16) as u64,
+            wgpu::BufferUsages::STORAGE,
+        );
         let lights = buffer(
             "raymarch lights",
             (MAX_LIGHTS * size_of::<GpuLight>()) as u64,
@@ -95,7 +103,10 @@ impl Raymarch {
     fn write_lights(&self, engine: &Engine, scene: &Scene) {
         let (lights, _) = gpu_lights(&scene.lights);
         if !lights.is_empty() {
-            engine.gpu.queue.write_buffer(&self.lights, 0, bytemuck::cast_slice(&lights));
+            engine
+                .gpu
+                .queue
+                .write_buffer(&self.lights, 0, bytemuck::cast_slice(&lights));
         }
     }
 }
@@ -105,7 +116,12 @@ impl Technique for Raymarch {
         "raymarch"
     }
 
-    fn apply(&mut self, engine: &Engine, scene: &Scene, change: &Change) -> Result<(), EngineError> {
+    fn apply(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        change: &Change,
+    ) -> Result<(), EngineError> {
         match change {
             Change::Tf { .. } => self.write_tf(engine, scene),
             Change::Lights => self.write_lights(engine, scene),
@@ -120,7 +136,12 @@ impl Technique for Raymarch {
         Ok(())
     }
 
-    fn step(&mut self, engine: &Engine, scene: &Scene, budget: Duration) -> Result<StepReport, EngineError> {
+    fn step(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        budget: Duration,
+    ) -> Result<StepReport, EngineError> {
         let target = scene.target_iterations;
         let start = Instant::now();
         let mut done = 0;
@@ -130,12 +151,20 @@ impl Technique for Raymarch {
             for _ in 0..batch {
                 let uniforms = SceneUniforms::new(scene, &self.volume, self.iteration)
                     .map_err(EngineError::InvalidScene)?;
-                engine.gpu.queue.write_buffer(&self.scene_buf, 0, bytemuck::bytes_of(&uniforms));
-                let mut encoder = engine
+                engine
                     .gpu
-                    .device
-                    .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("raymarch step") });
-                engine.raymarch.encode(&mut encoder, &self.bind_group, self.width, self.height);
+                    .queue
+                    .write_buffer(&self.scene_buf, 0, bytemuck::bytes_of(&uniforms));
+                let mut encoder =
+                    engine
+                        .gpu
+                        .device
+                        .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                            label: Some("raymarch step"),
+                        });
+                engine
+                    .raymarch
+                    .encode(&mut encoder, &self.bind_group, self.width, self.height);
                 engine.gpu.queue.submit([encoder.finish()]);
                 self.iteration += 1;
             }
@@ -147,7 +176,8 @@ impl Technique for Raymarch {
             if remaining.is_zero() {
                 break;
             }
-            let fit = (remaining.as_secs_f64() / per_iteration.as_secs_f64().max(1e-6) * 0.5) as u32;
+            let fit =
+                (remaining.as_secs_f64() / per_iteration.as_secs_f64().max(1e-6) * 0.5) as u32;
             if fit == 0 {
                 break;
             }

@@ -1,0 +1,912 @@
+// voxlight browser client: shows the server's progressively refined frames and sends camera,
+// transfer-function, light, technique and parameter edits. Plain ES modules, no dependencies,
+// 2D canvas only (works with GPU and WebGL disabled). Protocol: docs/protocol.md.
+
+import { Connection, PROTOCOL_VERSION, wsUrlFor } from './connection.js';
+import * as Cam from './camera.js';
+import { TfEditor } from './tf-editor.js';
+import { PRESETS, presetToTf, clipTf } from './presets.js';
+
+/** @typedef {import('./camera.js').Camera} Camera */
+/** @typedef {import('./connection.js').FrameMeta} FrameMeta */
+/** @typedef {[number, number, number]} Vec3 */
+
+const $ = (/** @type {string} */ id) => /** @type {any} */ (document.getElementById(id));
+const params = new URLSearchParams(location.search);
+
+/** Longest edge the server accepts (protocol MAX_VIEWPORT_EDGE). */
+const MAX_VIEWPORT_EDGE = 4096;
+/** Streamed images are capped to about this many pixels (1024²). */
+const MAX_VIEWPORT_PIXELS = 1024 * 1024;
+const MIN_VIEWPORT_EDGE = 64;
+
+// ---- state ---------------------------------------------------------------------------------
+
+/** Everything tests (and curious people in the console) may look at. */
+const vx = {
+  connected: false,
+  session: /** @type {string|null} */ (null),
+  welcome: /** @type {any} */ (null),
+  dataset: /** @type {any} */ (null),
+  techniques: /** @type {{name: string, description: string}[]} */ ([]),
+  framesReceived: 0,
+  framesShown: 0,
+  framesDropped: 0,
+  lastMeta: /** @type {FrameMeta|null} */ (null),
+  lastShownMeta: /** @type {FrameMeta|null} */ (null),
+  lastStats: /** @type {any} */ (null),
+  lastLatencyMs: /** @type {number|null} */ (null),
+  sent: /** @type {Record<string, number>} */ ({}),
+  lastSent: /** @type {Record<string, any>} */ ({}),
+  errors: /** @type {{code: string, message: string}[]} */ ([]),
+  camera: /** @type {Camera} */ (Cam.cloneCamera(Cam.DEFAULT_CAMERA)),
+  viewport: { width: 512, height: 512 },
+  /** Small grayscale thumbnail of the displayed picture, for tests: {w, h, data: number[]}. */
+  sample: (/** @type {number} */ n) => sampleCanvas(n || 32),
+  connection: /** @type {Connection|null} */ (null),
+};
+// @ts-ignore
+window.voxlight = vx;
+
+/** Local copy of the editable session state (what we show and what we last sent). */
+const local = {
+  dataset: params.get('dataset') || '',
+  technique: params.get('technique') || '',
+  params: { density_scale: 60, g: 0, exposure: 1 },
+  /** @type {any[]} */
+  lights: [],
+  jpeg_quality: 80,
+  iterations: 64,
+  /** Did the user change anything (so a reconnect restores it)? */
+  edited: false,
+  /** The home camera for double-click reset. */
+  home: Cam.cloneCamera(Cam.DEFAULT_CAMERA),
+};
+
+// ---- elements ------------------------------------------------------------------------------
+
+const canvas = /** @type {HTMLCanvasElement} */ ($('viewer'));
+const ctx = /** @type {CanvasRenderingContext2D} */ (canvas.getContext('2d', { alpha: false }));
+const tfEditor = new TfEditor($('tf'), { colorInput: $('tf-color'), readout: $('tf-readout') });
+
+// ---- connection ----------------------------------------------------------------------------
+
+const conn = new Connection(params.get('ws') || wsUrlFor(location), () => {
+  /** @type {any} */
+  vx.viewport = computeViewport();
+  const hello = { type: 'hello', protocol: PROTOCOL_VERSION, viewport: vx.viewport };
+  if (local.dataset) hello.dataset = local.dataset;
+  if (local.technique) hello.technique = local.technique;
+  const session = params.get('session');
+  if (session) hello.session = session;
+  const token = params.get('token');
+  if (token) hello.token = token;
+  return hello;
+});
+vx.connection = conn;
+
+/** @param {string} type @param {object} body */
+function send(type, body = {}) {
+  const msg = { type, ...body };
+  const ok = conn.send(msg);
+  if (ok) {
+    vx.sent[type] = (vx.sent[type] || 0) + 1;
+    vx.lastSent[type] = msg;
+  }
+  return ok;
+}
+
+conn.addEventListener('connecting', (/** @type {any} */ e) => {
+  setConnDot('wait');
+  if (vx.welcome) showOverlay('Connection lost', `reconnecting (attempt ${e.detail.attempt})…`, true);
+  else showOverlay('Connecting…', `to ${location.host || 'server'}${e.detail.attempt > 1 ? ` (attempt ${e.detail.attempt})` : ''}`, e.detail.attempt > 1);
+});
+
+conn.addEventListener('welcome', (/** @type {any} */ e) => {
+  const w = e.detail.msg;
+  const reconnect = !!vx.welcome;
+  vx.welcome = w;
+  vx.connected = true;
+  vx.session = w.session;
+  vx.techniques = Array.isArray(w.techniques) ? w.techniques : [];
+  resetFrameTracking();
+  hideOverlay();
+  setConnDot('on');
+  $('st-adapter').textContent = `${w.adapter || '?'} · server ${w.server_version || '?'} · session ${String(w.session || '').slice(0, 8)}`;
+  fillTechniques(vx.techniques);
+  const restore = reconnect && local.edited && w.dataset && w.dataset.name === local.dataset;
+  applyDatasetInfo(w.dataset);
+  if (restore) {
+    // New session after a dropped connection: put back what this user had.
+    toast('info', 'reconnected', 'new session; your view and settings were restored');
+    pushAll();
+  } else {
+    applyState(w.state || {});
+    // ?iterations=N in the page URL: a convergence target for this viewer (demos, tests).
+    const wanted = Number(params.get('iterations'));
+    if (Number.isInteger(wanted) && wanted >= 1 && wanted !== local.iterations) {
+      local.iterations = wanted;
+      sIters.set(wanted);
+      send('quality', { jpeg_quality: local.jpeg_quality, iterations: wanted });
+    }
+  }
+  // The session's viewport (a joined session may have another); send ours if it differs.
+  const svp = w.state && w.state.viewport;
+  if (svp && Number.isFinite(svp.width) && Number.isFinite(svp.height)) vx.viewport = { width: svp.width, height: svp.height };
+  scheduleViewport(0);
+});
+
+conn.addEventListener('message', (/** @type {any} */ e) => {
+  const m = e.detail.msg;
+  switch (m.type) {
+    case 'dataset_loaded':
+      $('dataset').disabled = false;
+      applyDatasetInfo(m.dataset);
+      applyState(m.state || {});
+      toast('info', 'dataset', `${m.dataset?.name || 'dataset'} loaded`);
+      break;
+    case 'stats':
+      vx.lastStats = m;
+      renderStatus();
+      break;
+    case 'error': {
+      const err = { code: String(m.code || 'error'), message: String(m.message || '') };
+      vx.errors.push(err);
+      if (vx.errors.length > 50) vx.errors.shift();
+      if (err.code === 'unknown_dataset' || err.code === 'load_failed') $('dataset').disabled = false;
+      toast('error', err.code, err.message);
+      break;
+    }
+    case 'bye':
+      showOverlay('Server is shutting down', String(m.reason || ''), false);
+      break;
+    default:
+      break; // newer servers may send more; ignore what we do not know
+  }
+});
+
+conn.addEventListener('close', (/** @type {any} */ e) => {
+  const d = e.detail;
+  vx.connected = false;
+  setConnDot('off');
+  if (d.retryInMs < 0) {
+    showOverlay('Disconnected', '', true);
+    return;
+  }
+  const why = d.reason ? `“${d.reason}”` : d.everConnected ? `connection lost (code ${d.code})` : 'server unreachable';
+  showOverlay('Connection lost', `${why} — reconnecting in ${(d.retryInMs / 1000).toFixed(1)} s`, true);
+  $('badge').className = 'badge badge-wait';
+  $('badge').textContent = 'offline';
+});
+
+conn.addEventListener('frame', (/** @type {any} */ e) => onFrame(e.detail));
+
+$('overlay-retry').addEventListener('click', () => conn.retryNow());
+
+// ---- frames --------------------------------------------------------------------------------
+
+/** @type {{meta: FrameMeta, image: Uint8Array, receivedAt: number} | null} */
+let pendingFrame = null;
+let decoding = false;
+/** @type {ImageBitmap | null} */
+let shownBitmap = null;
+/** Display times of the last second's frames, for fps. */
+const shownTimes = /** @type {number[]} */ ([]);
+/** The oldest edit not yet seen in a frame: {at, baseVersion, kind}. */
+let pendingEdit = /** @type {{at: number, baseVersion: number, kind: string} | null} */ (null);
+let maxSceneVersion = -1;
+
+function resetFrameTracking() {
+  pendingEdit = null;
+  maxSceneVersion = -1;
+  pendingFrame = null;
+}
+
+/** @param {{meta: FrameMeta, image: Uint8Array, receivedAt: number}} f */
+function onFrame(f) {
+  vx.framesReceived++;
+  vx.lastMeta = f.meta;
+  const sv = Number(f.meta.scene_version);
+  if (Number.isFinite(sv)) {
+    if (pendingEdit && sv > pendingEdit.baseVersion) {
+      vx.lastLatencyMs = f.receivedAt - pendingEdit.at;
+      pendingEdit = null;
+    }
+    maxSceneVersion = Math.max(maxSceneVersion, sv);
+  }
+  if (decoding) {
+    if (pendingFrame) vx.framesDropped++; // newest wins
+    pendingFrame = f;
+    return;
+  }
+  void decodeAndShow(f);
+}
+
+/** @param {{meta: FrameMeta, image: Uint8Array}} f */
+async function decodeAndShow(f) {
+  decoding = true;
+  try {
+    const type = f.meta.format === 'png' ? 'image/png' : 'image/jpeg';
+    const bmp = await createImageBitmap(new Blob([f.image], { type }));
+    if (shownBitmap) shownBitmap.close();
+    shownBitmap = bmp;
+    drawShown();
+    vx.framesShown++;
+    vx.lastShownMeta = f.meta;
+    const now = performance.now();
+    shownTimes.push(now);
+    while (shownTimes.length && now - shownTimes[0] > 1000) shownTimes.shift();
+    renderStatus();
+  } catch (err) {
+    console.warn('voxlight: could not decode frame', f.meta && f.meta.seq, err);
+  } finally {
+    decoding = false;
+    const next = pendingFrame;
+    pendingFrame = null;
+    if (next) void decodeAndShow(next);
+  }
+}
+
+/** Draws the current bitmap scaled to fit the canvas (letterboxed, aspect kept). */
+function drawShown() {
+  ctx.fillStyle = '#000';
+  ctx.fillRect(0, 0, canvas.width, canvas.height);
+  const b = shownBitmap;
+  if (!b) return;
+  const s = Math.min(canvas.width / b.width, canvas.height / b.height);
+  const w = b.width * s;
+  const h = b.height * s;
+  ctx.imageSmoothingEnabled = true;
+  ctx.imageSmoothingQuality = 'high';
+  ctx.drawImage(b, (canvas.width - w) / 2, (canvas.height - h) / 2, w, h);
+}
+
+function sampleCanvas(n = 32) {
+  const c = document.createElement('canvas');
+  c.width = n;
+  c.height = n;
+  const g = /** @type {CanvasRenderingContext2D} */ (c.getContext('2d'));
+  g.drawImage(canvas, 0, 0, n, n);
+  const d = g.getImageData(0, 0, n, n).data;
+  const out = new Array(n * n);
+  for (let i = 0; i < n * n; i++) out[i] = Math.round((d[4 * i] + d[4 * i + 1] + d[4 * i + 2]) / 3);
+  return { w: n, h: n, data: out };
+}
+
+// ---- canvas size and viewport --------------------------------------------------------------
+
+function cssSize() {
+  const r = canvas.getBoundingClientRect();
+  return { w: Math.max(1, r.width), h: Math.max(1, r.height) };
+}
+
+/** CSS size × devicePixelRatio, capped to ~1024² pixels and MAX_VIEWPORT_EDGE, at least 64. */
+function computeViewport() {
+  const { w, h } = cssSize();
+  const dpr = window.devicePixelRatio || 1;
+  const s = Math.min(dpr, Math.sqrt(MAX_VIEWPORT_PIXELS / (w * h)));
+  const clampEdge = (x) => Math.max(MIN_VIEWPORT_EDGE, Math.min(MAX_VIEWPORT_EDGE, Math.round(x)));
+  return { width: clampEdge(w * s), height: clampEdge(h * s) };
+}
+
+let viewportTimer = 0;
+function scheduleViewport(delay = 150) {
+  clearTimeout(viewportTimer);
+  viewportTimer = setTimeout(() => {
+    const vp = computeViewport();
+    if (vp.width !== vx.viewport.width || vp.height !== vx.viewport.height) {
+      if (send('viewport', vp)) vx.viewport = vp;
+    }
+  }, delay);
+}
+
+function resizeCanvas() {
+  const { w, h } = cssSize();
+  const dpr = Math.min(2, window.devicePixelRatio || 1);
+  const bw = Math.max(1, Math.round(w * dpr));
+  const bh = Math.max(1, Math.round(h * dpr));
+  if (canvas.width !== bw || canvas.height !== bh) {
+    canvas.width = bw;
+    canvas.height = bh;
+  }
+  drawShown();
+  scheduleViewport();
+}
+new ResizeObserver(resizeCanvas).observe(canvas);
+vx.viewport = computeViewport();
+
+// ---- per-frame send coalescing ---------------------------------------------------------------
+
+/** Messages waiting for the next animation frame, one per type (latest wins). */
+const outbox = /** @type {Map<string, () => object>} */ (new Map());
+let outboxRaf = 0;
+
+/** @param {string} type @param {() => object} build */
+function queue(type, build) {
+  outbox.set(type, build);
+  if (!outboxRaf) outboxRaf = requestAnimationFrame(flushOutbox);
+}
+
+function flushOutbox() {
+  outboxRaf = 0;
+  for (const [type, build] of outbox) {
+    const body = build();
+    if (send(type, body) && (type === 'camera' || type === 'tf') && !pendingEdit) {
+      pendingEdit = { at: performance.now(), baseVersion: maxSceneVersion, kind: type };
+    }
+  }
+  outbox.clear();
+}
+
+function queueCamera() {
+  local.edited = true;
+  queue('camera', () => {
+    const m = Cam.toMessage(vx.camera);
+    const { type: _t, ...body } = m;
+    return body;
+  });
+}
+
+function queueTf(points) {
+  local.edited = true;
+  queue('tf', () => ({ points }));
+}
+
+// ---- camera interaction --------------------------------------------------------------------
+
+/** Active pointers on the viewer: id → last position. */
+const pointers = /** @type {Map<number, {x: number, y: number}>} */ (new Map());
+/** @type {null | {mode: 'orbit'|'pan'|'wl'|'touch', startX: number, startY: number, base?: any}} */
+let gesture = null;
+let pinchPrev = /** @type {{d: number, cx: number, cy: number} | null} */ (null);
+
+function pinchInfo() {
+  const [a, b] = [...pointers.values()];
+  return { d: Math.hypot(a.x - b.x, a.y - b.y), cx: (a.x + b.x) / 2, cy: (a.y + b.y) / 2 };
+}
+
+canvas.addEventListener('contextmenu', (e) => e.preventDefault());
+
+canvas.addEventListener('pointerdown', (e) => {
+  canvas.focus({ preventScroll: true });
+  try {
+    canvas.setPointerCapture(e.pointerId);
+  } catch {
+    /* ignore */
+  }
+  pointers.set(e.pointerId, { x: e.clientX, y: e.clientY });
+  if (e.pointerType === 'touch') {
+    gesture = { mode: 'touch', startX: e.clientX, startY: e.clientY };
+    pinchPrev = pointers.size === 2 ? pinchInfo() : null;
+  } else if (pointers.size === 1) {
+    let mode = /** @type {'orbit'|'pan'|'wl'} */ ('orbit');
+    if (e.button === 2 || e.button === 1 || e.shiftKey) mode = 'pan';
+    else if (e.ctrlKey || e.metaKey || e.altKey) mode = 'wl';
+    gesture = { mode, startX: e.clientX, startY: e.clientY, base: mode === 'wl' ? tfEditor.points : null };
+  }
+  canvas.classList.add('dragging');
+  e.preventDefault();
+});
+
+canvas.addEventListener('pointermove', (e) => {
+  const prev = pointers.get(e.pointerId);
+  if (!prev || !gesture) return;
+  const dx = e.clientX - prev.x;
+  const dy = e.clientY - prev.y;
+  prev.x = e.clientX;
+  prev.y = e.clientY;
+  const { h } = cssSize();
+  const ORBIT = Math.PI / Math.max(200, h); // half a turn per view height
+  if (gesture.mode === 'touch') {
+    if (pointers.size === 1) {
+      vx.camera = Cam.orbit(vx.camera, -dx * ORBIT, dy * ORBIT);
+    } else if (pointers.size === 2) {
+      const now = pinchInfo();
+      if (pinchPrev && now.d > 1 && pinchPrev.d > 1) {
+        vx.camera = Cam.zoom(vx.camera, pinchPrev.d / now.d);
+        vx.camera = Cam.pan(vx.camera, now.cx - pinchPrev.cx, now.cy - pinchPrev.cy, h);
+      }
+      pinchPrev = now;
+    } else {
+      return;
+    }
+    queueCamera();
+  } else if (gesture.mode === 'orbit') {
+    vx.camera = Cam.orbit(vx.camera, -dx * ORBIT, dy * ORBIT);
+    queueCamera();
+  } else if (gesture.mode === 'pan') {
+    vx.camera = Cam.pan(vx.camera, dx, dy, h);
+    queueCamera();
+  } else if (gesture.mode === 'wl') {
+    windowLevel(gesture.base, e.clientX - gesture.startX, e.clientY - gesture.startY);
+  }
+});
+
+function endPointer(/** @type {PointerEvent} */ e) {
+  pointers.delete(e.pointerId);
+  if (pointers.size === 0) {
+    gesture = null;
+    pinchPrev = null;
+    canvas.classList.remove('dragging');
+  } else if (pointers.size === 1 && gesture && gesture.mode === 'touch') {
+    pinchPrev = null; // back to one-finger orbit
+  } else if (pointers.size === 2) {
+    pinchPrev = pinchInfo();
+  }
+}
+canvas.addEventListener('pointerup', endPointer);
+canvas.addEventListener('pointercancel', endPointer);
+
+canvas.addEventListener(
+  'wheel',
+  (e) => {
+    e.preventDefault();
+    const unit = e.deltaMode === 1 ? 33 : e.deltaMode === 2 ? 400 : 1;
+    const delta = Math.max(-400, Math.min(400, e.deltaY * unit));
+    vx.camera = Cam.zoom(vx.camera, Math.exp(delta * 0.0015));
+    queueCamera();
+  },
+  { passive: false },
+);
+
+canvas.addEventListener('dblclick', (e) => {
+  e.preventDefault();
+  vx.camera = Cam.cloneCamera(local.home);
+  queueCamera();
+});
+
+canvas.addEventListener('keydown', (e) => {
+  const step = e.shiftKey ? 0.2 : 0.05;
+  let handled = true;
+  if (e.key === 'ArrowLeft') vx.camera = Cam.orbit(vx.camera, step, 0);
+  else if (e.key === 'ArrowRight') vx.camera = Cam.orbit(vx.camera, -step, 0);
+  else if (e.key === 'ArrowUp') vx.camera = Cam.orbit(vx.camera, 0, step);
+  else if (e.key === 'ArrowDown') vx.camera = Cam.orbit(vx.camera, 0, -step);
+  else if (e.key === '+' || e.key === '=') vx.camera = Cam.zoom(vx.camera, 0.9);
+  else if (e.key === '-') vx.camera = Cam.zoom(vx.camera, 1 / 0.9);
+  else if (e.key === 'r' || e.key === 'Home') vx.camera = Cam.cloneCamera(local.home);
+  else handled = false;
+  if (handled) {
+    e.preventDefault();
+    queueCamera();
+  }
+});
+
+/**
+ * Window/level in the 3D view: horizontal drag shifts the whole TF along the value axis (level),
+ * vertical drag narrows (up) or widens (down) it around its centre (window).
+ * @param {any[]} base points when the drag started
+ */
+function windowLevel(base, dx, dy) {
+  if (!base || base.length === 0) return;
+  const { w } = cssSize();
+  const shift = dx / Math.max(200, w);
+  const widen = Math.exp(dy * 0.004);
+  const lo = base[0].value;
+  const hi = base[base.length - 1].value;
+  const c = (lo + hi) / 2;
+  const moved = base.map((p) => ({ ...p, value: c + shift + (p.value - c) * widen }));
+  const pts = clipTf(moved);
+  tfEditor.setPoints(pts);
+  markPreset(null);
+  queueTf(tfEditor.points);
+}
+
+// ---- TF editor + presets -------------------------------------------------------------------
+
+tfEditor.addEventListener('change', (/** @type {any} */ e) => {
+  markPreset(null);
+  queueTf(e.detail);
+});
+
+$('tf-sqrt').addEventListener('click', () => {
+  const on = $('tf-sqrt').getAttribute('aria-pressed') !== 'true';
+  $('tf-sqrt').setAttribute('aria-pressed', String(on));
+  tfEditor.setSqrtY(on);
+});
+
+for (const p of PRESETS) {
+  const b = document.createElement('button');
+  b.type = 'button';
+  b.textContent = p.label;
+  b.title = p.description;
+  b.dataset.preset = p.id;
+  b.addEventListener('click', () => applyPreset(p.id));
+  $('presets').appendChild(b);
+}
+
+/** @param {string} id */
+function applyPreset(id) {
+  const p = PRESETS.find((q) => q.id === id);
+  if (!p) return;
+  const d = vx.dataset?.details;
+  const min = d && Number.isFinite(d.value_min) ? d.value_min : 0;
+  const max = d && Number.isFinite(d.value_max) ? d.value_max : 1;
+  if (p.space === 'HU' && d && d.units !== 'HU') {
+    toast('info', 'preset', `${p.label} assumes CT data in HU; this dataset's units are “${d.units || 'unknown'}”`);
+  }
+  const points = presetToTf(p, min, max);
+  tfEditor.setPoints(points);
+  markPreset(id);
+  queueTf(tfEditor.points);
+}
+
+/** @param {string|null} id */
+function markPreset(id) {
+  for (const b of $('presets').querySelectorAll('button')) b.classList.toggle('active', b.dataset.preset === id);
+}
+
+// ---- sliders -------------------------------------------------------------------------------
+
+/** Maps a 0..1000 slider to [lo, hi] logarithmically. */
+const logMap = (lo, hi) => ({
+  toValue: (/** @type {number} */ s) => lo * Math.pow(hi / lo, s / 1000),
+  toSlider: (/** @type {number} */ v) => Math.round((1000 * Math.log(Math.max(lo, Math.min(hi, v)) / lo)) / Math.log(hi / lo)),
+});
+const densityMap = logMap(0.5, 2000);
+const exposureMap = logMap(0.05, 20);
+const intensityMap = logMap(0.05, 50);
+const envMap = { toValue: (s) => (s / 1000) * 2, toSlider: (v) => Math.round((Math.max(0, Math.min(2, v)) / 2) * 1000) };
+const itersMap = logMap(1, 4096);
+
+/**
+ * Binds a slider: on input, updates its output text and calls onChange(value).
+ * @param {string} id
+ * @param {{toValue: (s: number) => number, toSlider: (v: number) => number}} map
+ * @param {(v: number) => string} fmt
+ * @param {(v: number) => void} onChange
+ */
+function bindSlider(id, map, fmt, onChange) {
+  const input = $(id);
+  const out = $(id + '-out');
+  input.addEventListener('input', () => {
+    const v = +map.toValue(Number(input.value)).toPrecision(4);
+    out.textContent = fmt(v);
+    onChange(v);
+  });
+  return {
+    /** @param {number} v */
+    set(v) {
+      input.value = String(map.toSlider(v));
+      out.textContent = fmt(v);
+    },
+  };
+}
+
+const fmt2 = (v) => (v >= 100 ? v.toFixed(0) : v >= 10 ? v.toFixed(1) : v.toFixed(2));
+const identity = { toValue: (s) => s, toSlider: (v) => Math.round(v) };
+
+const sDensity = bindSlider('density', densityMap, fmt2, (v) => {
+  local.params.density_scale = v;
+  queueParams();
+});
+const sExposure = bindSlider('exposure', exposureMap, fmt2, (v) => {
+  local.params.exposure = v;
+  queueParams();
+});
+const sG = bindSlider('g', { toValue: (s) => s / 100, toSlider: (v) => Math.round(v * 100) }, (v) => v.toFixed(2), (v) => {
+  local.params.g = v;
+  queueParams();
+});
+function queueParams() {
+  local.edited = true;
+  queue('params', () => ({ ...local.params }));
+}
+
+const key = { az: -34, el: 44, intensity: 2.5, tint: /** @type {Vec3} */ ([1, 0.96, 0.88]) };
+const env = { brightness: 0.25, tint: /** @type {Vec3} */ ([1, 1.08, 1.2]) };
+const sAz = bindSlider('light-az', identity, (v) => `${Math.round(v)}°`, (v) => {
+  key.az = v;
+  queueLights();
+});
+const sEl = bindSlider('light-el', identity, (v) => `${Math.round(v)}°`, (v) => {
+  key.el = v;
+  queueLights();
+});
+const sInt = bindSlider('light-int', intensityMap, fmt2, (v) => {
+  key.intensity = v;
+  queueLights();
+});
+const sEnv = bindSlider('light-env', envMap, fmt2, (v) => {
+  env.brightness = v;
+  queueLights();
+});
+
+const sJpeg = bindSlider('jpeg-q', identity, (v) => String(Math.round(v)), (v) => {
+  local.jpeg_quality = Math.round(v);
+  queue('quality', () => ({ jpeg_quality: local.jpeg_quality, iterations: local.iterations }));
+});
+const sIters = bindSlider('iters', itersMap, (v) => String(Math.round(v)), (v) => {
+  local.iterations = Math.max(1, Math.round(v));
+  queue('quality', () => ({ jpeg_quality: local.jpeg_quality, iterations: local.iterations }));
+});
+
+/**
+ * Key-light direction from azimuth (degrees, 0 = from the front (−y), positive toward +x) and
+ * elevation (degrees above the xy plane). `direction` on the wire is the way the light travels,
+ * i.e. from the light into the scene, so it is minus the vector toward the light.
+ */
+function keyDirection(az, el) {
+  const a = (az * Math.PI) / 180;
+  const e = (el * Math.PI) / 180;
+  const toLight = [Math.cos(e) * Math.sin(a), -Math.cos(e) * Math.cos(a), Math.sin(e)];
+  return toLight.map((x) => round5(-x));
+}
+
+const round5 = (x) => Math.round(x * 1e5) / 1e5;
+const maxc = (/** @type {number[]} */ v) => Math.max(1e-6, v[0], v[1], v[2]);
+
+function buildLights() {
+  const lights = [];
+  let haveKey = false;
+  let haveEnv = false;
+  for (const l of local.lights) {
+    if (l.kind === 'directional' && !haveKey) {
+      haveKey = true;
+      lights.push({ kind: 'directional', direction: keyDirection(key.az, key.el), irradiance: key.tint.map((t) => round5(t * key.intensity)) });
+    } else if (l.kind === 'environment' && !haveEnv) {
+      haveEnv = true;
+      lights.push({ kind: 'environment', radiance: env.tint.map((t) => round5(t * env.brightness)) });
+    } else {
+      lights.push(l);
+    }
+  }
+  if (!haveKey) lights.unshift({ kind: 'directional', direction: keyDirection(key.az, key.el), irradiance: key.tint.map((t) => round5(t * key.intensity)) });
+  if (!haveEnv) lights.push({ kind: 'environment', radiance: env.tint.map((t) => round5(t * env.brightness)) });
+  return lights.slice(0, 16);
+}
+
+function queueLights() {
+  local.edited = true;
+  local.lights = buildLights();
+  queue('lights', () => ({ lights: local.lights }));
+}
+
+/** Reads the first directional and environment light into the light controls. */
+function lightsToControls(lights) {
+  local.lights = Array.isArray(lights) ? lights.map((l) => ({ ...l })) : [];
+  const k = local.lights.find((l) => l.kind === 'directional');
+  if (k && Array.isArray(k.direction) && Array.isArray(k.irradiance)) {
+    const d = Cam.normalize(/** @type {Vec3} */ (k.direction.map((x) => -x)));
+    key.el = (Math.asin(Math.max(-1, Math.min(1, d[2]))) * 180) / Math.PI;
+    key.az = (Math.atan2(d[0], -d[1]) * 180) / Math.PI;
+    key.intensity = maxc(k.irradiance);
+    key.tint = /** @type {Vec3} */ (k.irradiance.map((x) => x / key.intensity));
+  }
+  const en = local.lights.find((l) => l.kind === 'environment');
+  if (en && Array.isArray(en.radiance)) {
+    env.brightness = maxc(en.radiance);
+    env.tint = /** @type {Vec3} */ (en.radiance.map((x) => x / env.brightness));
+  }
+  sAz.set(key.az);
+  sEl.set(key.el);
+  sInt.set(key.intensity);
+  sEnv.set(env.brightness);
+}
+
+// ---- dataset + technique pickers -----------------------------------------------------------
+
+$('dataset').addEventListener('change', () => {
+  const name = $('dataset').value;
+  if (!name || name === vx.dataset?.name) return;
+  if (send('dataset', { name })) {
+    local.dataset = name;
+    $('dataset').disabled = true;
+    $('dataset-info').textContent = `loading ${name}…`;
+  }
+});
+
+$('technique').addEventListener('change', () => {
+  const name = $('technique').value;
+  if (send('technique', { name })) {
+    local.technique = name;
+    local.edited = true;
+    showTechniqueDesc();
+  }
+});
+
+async function loadDatasetList() {
+  try {
+    const res = await fetch('./api/datasets', { headers: { accept: 'application/json' } });
+    if (!res.ok) throw new Error(`HTTP ${res.status}`);
+    const body = await res.json();
+    const list = Array.isArray(body.datasets) ? body.datasets : [];
+    const sel = $('dataset');
+    const current = vx.dataset?.name || local.dataset || body.default;
+    sel.textContent = '';
+    for (const d of list) {
+      const o = document.createElement('option');
+      o.value = d.name;
+      o.textContent = d.kind && !String(d.name).startsWith(d.kind) ? `${d.name}  (${d.kind})` : d.name;
+      sel.appendChild(o);
+    }
+    ensureDatasetOption(current);
+  } catch (err) {
+    console.warn('voxlight: could not list datasets', err);
+    if (vx.dataset) ensureDatasetOption(vx.dataset.name);
+  }
+}
+
+function ensureDatasetOption(name) {
+  if (!name) return;
+  const sel = $('dataset');
+  if (![...sel.options].some((o) => o.value === name)) {
+    const o = document.createElement('option');
+    o.value = name;
+    o.textContent = name;
+    sel.appendChild(o);
+  }
+  sel.value = name;
+}
+
+function fillTechniques(list) {
+  const sel = $('technique');
+  sel.textContent = '';
+  for (const t of list) {
+    const o = document.createElement('option');
+    o.value = t.name;
+    o.textContent = t.name;
+    o.title = t.description || '';
+    sel.appendChild(o);
+  }
+}
+
+function showTechniqueDesc() {
+  const t = vx.techniques.find((x) => x.name === $('technique').value);
+  $('technique-desc').textContent = t ? t.description : '';
+}
+
+/** @param {any} info DatasetInfo */
+function applyDatasetInfo(info) {
+  if (!info) return;
+  vx.dataset = info;
+  local.dataset = info.name;
+  ensureDatasetOption(info.name);
+  $('dataset').disabled = false;
+  const d = info.details;
+  $('hud-dataset').textContent = info.name;
+  if (d) {
+    tfEditor.setDataset(d);
+    const units = d.units ? ` ${d.units}` : '';
+    const sp = (d.spacing || []).map((x) => +Number(x).toFixed(3)).join(' × ');
+    $('dataset-info').textContent = `${(d.dims || []).join(' × ')} voxels · spacing ${sp} · ${fmtNum(d.value_min)}…${fmtNum(d.value_max)}${units}` + (d.modality ? ` · ${d.modality}` : '') + (d.format ? ` · ${d.format}` : '');
+    $('hud-sub').textContent = [d.modality, d.dims ? d.dims.join('×') : ''].filter(Boolean).join(' · ');
+    for (const w of d.warnings || []) toast('info', 'dataset', String(w));
+    const isCt = d.units === 'HU';
+    for (const b of $('presets').querySelectorAll('button')) {
+      const p = PRESETS.find((q) => q.id === b.dataset.preset);
+      b.classList.toggle('not-ct', !!p && p.space === 'HU' && !isCt);
+    }
+  } else {
+    tfEditor.setDataset({});
+    $('dataset-info').textContent = info.kind || '';
+  }
+}
+
+/** @param {any} s SessionState */
+function applyState(s) {
+  if (s.camera && Cam.isValidCamera(s.camera)) {
+    vx.camera = Cam.cloneCamera(s.camera);
+  }
+  if (s.tf && Array.isArray(s.tf.points)) tfEditor.setPoints(s.tf.points);
+  markPreset(null);
+  if (s.params) {
+    for (const k of ['density_scale', 'g', 'exposure']) if (Number.isFinite(s.params[k])) local.params[k] = s.params[k];
+  }
+  sDensity.set(local.params.density_scale);
+  sExposure.set(local.params.exposure);
+  sG.set(local.params.g);
+  if (Array.isArray(s.lights)) lightsToControls(s.lights);
+  if (typeof s.technique === 'string') {
+    local.technique = s.technique;
+    $('technique').value = s.technique;
+  }
+  showTechniqueDesc();
+  if (Number.isFinite(s.jpeg_quality)) local.jpeg_quality = s.jpeg_quality;
+  if (Number.isFinite(s.iterations)) local.iterations = s.iterations;
+  sJpeg.set(local.jpeg_quality);
+  sIters.set(local.iterations);
+  if (typeof s.dataset === 'string') ensureDatasetOption(s.dataset);
+}
+
+/** After a reconnect into a fresh session: send our whole local state. */
+function pushAll() {
+  send('camera', Cam.toMessage(vx.camera));
+  send('tf', { points: tfEditor.points });
+  send('lights', { lights: buildLights() });
+  send('params', { ...local.params });
+  if (local.technique && vx.welcome?.state?.technique !== local.technique) send('technique', { name: local.technique });
+  $('technique').value = local.technique;
+  showTechniqueDesc();
+}
+
+// ---- status line, badge, toasts, overlay ---------------------------------------------------
+
+function renderStatus() {
+  const m = vx.lastShownMeta || vx.lastMeta;
+  const st = vx.lastStats;
+  const now = performance.now();
+  while (shownTimes.length && now - shownTimes[0] > 1000) shownTimes.shift();
+  $('st-fps').textContent = `${shownTimes.length} fps`;
+  if (m) {
+    $('st-iter').textContent = `it ${m.iteration}/${m.target_iterations}`;
+    $('st-tech').textContent = m.technique;
+    const conv = $('st-conv');
+    conv.textContent = m.converged ? 'converged' : 'converging…';
+    conv.className = m.converged ? 'done' : 'conv';
+    $('st-codec').textContent = m.lossless ? 'lossless PNG' : `${String(m.format).toUpperCase()}${m.quality ? ' q' + m.quality : ''}`;
+    $('st-size').textContent = `${m.width}×${m.height}`;
+    const frac = m.target_iterations > 0 ? Math.min(1, m.iteration / m.target_iterations) : m.converged ? 1 : 0;
+    $('progress-bar').style.width = `${(m.converged ? 1 : frac) * 100}%`;
+    $('progress').classList.toggle('done', !!m.converged);
+    const badge = $('badge');
+    if (m.converged) {
+      badge.className = 'badge badge-done';
+      badge.textContent = m.lossless ? 'converged · lossless' : 'converged';
+    } else {
+      badge.className = 'badge badge-conv';
+      badge.textContent = `converging ${m.iteration}/${m.target_iterations}`;
+    }
+  }
+  $('st-lat').textContent = vx.lastLatencyMs == null ? 'edit→frame –' : `edit→frame ${Math.round(vx.lastLatencyMs)} ms`;
+  if (st) $('st-gpu').textContent = `gpu ${Number(st.gpu_ms || 0).toFixed(1)} ms · ${fmtBytes(st.memory_bytes || 0)}`;
+}
+setInterval(renderStatus, 500);
+
+/**
+ * @param {'error'|'info'} kind
+ * @param {string} code
+ * @param {string} text
+ */
+function toast(kind, code, text) {
+  const el = document.createElement('div');
+  el.className = `toast ${kind === 'info' ? 'info' : ''}`;
+  const b = document.createElement('b');
+  b.textContent = code;
+  el.appendChild(b);
+  el.appendChild(document.createTextNode(text));
+  const box = $('toasts');
+  box.appendChild(el);
+  while (box.children.length > 4) box.firstChild.remove();
+  setTimeout(() => el.remove(), kind === 'error' ? 6000 : 3500);
+}
+
+function showOverlay(title, text, retry) {
+  $('overlay').hidden = false;
+  $('overlay-title').textContent = title;
+  $('overlay-text').textContent = text;
+  $('overlay-retry').hidden = !retry;
+}
+function hideOverlay() {
+  $('overlay').hidden = true;
+}
+function setConnDot(state) {
+  const d = $('conn-dot');
+  d.className = 'dot' + (state === 'on' ? ' on' : state === 'wait' ? ' wait' : '');
+  d.title = state === 'on' ? 'connected' : state === 'wait' ? 'connecting' : 'disconnected';
+}
+
+function fmtNum(x) {
+  if (!Number.isFinite(x)) return '?';
+  return (Math.abs(x) >= 100 ? Math.round(x).toString() : (+x.toPrecision(4)).toString()).replace('-', '−');
+}
+function fmtBytes(n) {
+  if (n >= 1 << 30) return (n / (1 << 30)).toFixed(2) + ' GiB';
+  if (n >= 1 << 20) return (n / (1 << 20)).toFixed(1) + ' MiB';
+  return (n / 1024).toFixed(0) + ' KiB';
+}
+
+// ---- start ---------------------------------------------------------------------------------
+
+sDensity.set(local.params.density_scale);
+sExposure.set(local.params.exposure);
+sG.set(local.params.g);
+lightsToControls([
+  { kind: 'directional', direction: [0.4, 0.6, -0.7], irradiance: [2.5, 2.4, 2.2] },
+  { kind: 'environment', radiance: [0.25, 0.27, 0.3] },
+]);
+sJpeg.set(local.jpeg_quality);
+sIters.set(local.iterations);
+showOverlay('Connecting…', `to ${location.host || 'server'}`, false);
+void loadDatasetList();
+conn.connect();

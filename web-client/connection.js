@@ -1,0 +1,197 @@
+// WebSocket connection to the voxlight server: JSON text messages tagged by "type", binary
+// frames (4-byte little-endian length N, N bytes UTF-8 JSON FrameMeta, then the image), and
+// reconnection with exponential backoff. See docs/protocol.md.
+
+export const PROTOCOL_VERSION = 1;
+/** Largest text message the server accepts (protocol crate MAX_MESSAGE_BYTES). */
+export const MAX_MESSAGE_BYTES = 64 * 1024;
+
+/**
+ * @typedef {object} FrameMeta
+ * @property {number} seq
+ * @property {'jpeg'|'png'} format
+ * @property {number} width
+ * @property {number} height
+ * @property {string} technique
+ * @property {number} iteration
+ * @property {number} target_iterations
+ * @property {boolean} converged
+ * @property {boolean} lossless
+ * @property {number} [quality]
+ * @property {number} scene_version
+ * @property {number} render_ms
+ * @property {number} encode_ms
+ */
+
+/**
+ * Splits a binary frame message. Returns null when it is malformed.
+ * @param {ArrayBuffer} buf
+ * @returns {{meta: FrameMeta, image: Uint8Array} | null}
+ */
+export function splitFrame(buf) {
+  if (!(buf instanceof ArrayBuffer) || buf.byteLength < 4) return null;
+  const n = new DataView(buf).getUint32(0, true);
+  if (4 + n > buf.byteLength) return null;
+  try {
+    const meta = JSON.parse(new TextDecoder().decode(new Uint8Array(buf, 4, n)));
+    if (!meta || typeof meta !== 'object') return null;
+    return { meta, image: new Uint8Array(buf, 4 + n) };
+  } catch {
+    return null;
+  }
+}
+
+/** The WebSocket URL for a page URL: same host, ws: or wss: matching http: or https:. */
+export function wsUrlFor(loc = window.location) {
+  const proto = loc.protocol === 'https:' ? 'wss:' : 'ws:';
+  return `${proto}//${loc.host}/ws`;
+}
+
+/**
+ * Events (CustomEvent detail in brackets):
+ *  - `connecting` {attempt}
+ *  - `welcome` {msg}           the server's welcome; backoff is reset
+ *  - `message` {msg}           every other JSON message (dataset_loaded, stats, error, bye, ...)
+ *  - `frame` {meta, image, receivedAt}
+ *  - `close` {code, reason, retryInMs, everConnected}
+ */
+export class Connection extends EventTarget {
+  /**
+   * @param {string} url WebSocket URL
+   * @param {() => object} makeHello builds the hello message for each (re)connection
+   */
+  constructor(url, makeHello) {
+    super();
+    this.url = url;
+    this.makeHello = makeHello;
+    /** @type {WebSocket | null} */
+    this.ws = null;
+    this.attempt = 0;
+    this.ready = false; // welcome received on the current socket
+    this.closedByUser = false;
+    this._timer = 0;
+    this.bytesIn = 0;
+    this.lastByeReason = '';
+  }
+
+  connect() {
+    this.closedByUser = false;
+    clearTimeout(this._timer);
+    this._timer = 0;
+    this.ready = false;
+    this.attempt++;
+    this._emit('connecting', { attempt: this.attempt });
+    let ws;
+    try {
+      ws = new WebSocket(this.url);
+    } catch (err) {
+      this._scheduleReconnect(0, String(err));
+      return;
+    }
+    ws.binaryType = 'arraybuffer';
+    this.ws = ws;
+    let opened = false;
+    ws.onopen = () => {
+      opened = true;
+      this._sendRaw(ws, this.makeHello());
+    };
+    ws.onmessage = (ev) => {
+      if (ws !== this.ws) return;
+      if (typeof ev.data === 'string') {
+        this.bytesIn += ev.data.length;
+        let msg;
+        try {
+          msg = JSON.parse(ev.data);
+        } catch {
+          console.warn('voxlight: ignoring non-JSON text message');
+          return;
+        }
+        if (!msg || typeof msg.type !== 'string') return;
+        if (msg.type === 'welcome') {
+          this.ready = true;
+          this.attempt = 0;
+          this._emit('welcome', { msg });
+        } else {
+          if (msg.type === 'bye') this.lastByeReason = String(msg.reason || '');
+          this._emit('message', { msg });
+        }
+      } else if (ev.data instanceof ArrayBuffer) {
+        this.bytesIn += ev.data.byteLength;
+        const f = splitFrame(ev.data);
+        if (!f) {
+          console.warn('voxlight: ignoring malformed binary frame');
+          return;
+        }
+        this._emit('frame', { meta: f.meta, image: f.image, receivedAt: performance.now() });
+      }
+    };
+    ws.onerror = () => {
+      /* a close event follows; handled there */
+    };
+    ws.onclose = (ev) => {
+      if (ws !== this.ws) return;
+      this.ws = null;
+      this.ready = false;
+      if (this.closedByUser) {
+        this._emit('close', { code: ev.code, reason: ev.reason, retryInMs: -1, everConnected: opened });
+        return;
+      }
+      this._scheduleReconnect(ev.code, ev.reason || this.lastByeReason, opened);
+    };
+  }
+
+  _scheduleReconnect(code, reason, everConnected = false) {
+    // 0.5 s, 1 s, 2 s, 4 s, 8 s, then every 10 s, with ±20 % jitter.
+    const base = Math.min(10000, 500 * Math.pow(2, Math.max(0, this.attempt - 1)));
+    const retryInMs = Math.round(base * (0.8 + 0.4 * Math.random()));
+    this._emit('close', { code, reason, retryInMs, everConnected });
+    clearTimeout(this._timer);
+    this._timer = setTimeout(() => this.connect(), retryInMs);
+  }
+
+  /** Reconnect now (e.g. a "retry" button). */
+  retryNow() {
+    if (this.ws && this.ws.readyState <= 1) return;
+    this.attempt = 0;
+    this.connect();
+  }
+
+  close() {
+    this.closedByUser = true;
+    clearTimeout(this._timer);
+    if (this.ws) this.ws.close(1000, 'client closed');
+  }
+
+  /**
+   * Sends a JSON message once the session is ready. Returns false when it could not be sent.
+   * @param {object} msg
+   */
+  send(msg) {
+    if (!this.ws || !this.ready || this.ws.readyState !== WebSocket.OPEN) return false;
+    return this._sendRaw(this.ws, msg);
+  }
+
+  /** @param {WebSocket} ws */
+  _sendRaw(ws, msg) {
+    const text = JSON.stringify(msg);
+    if (text.length > MAX_MESSAGE_BYTES) {
+      console.warn(`voxlight: not sending ${msg && msg.type} (${text.length} bytes > ${MAX_MESSAGE_BYTES})`);
+      return false;
+    }
+    try {
+      ws.send(text);
+      return true;
+    } catch (err) {
+      console.warn('voxlight: send failed', err);
+      return false;
+    }
+  }
+
+  get bufferedAmount() {
+    return this.ws ? this.ws.bufferedAmount : 0;
+  }
+
+  _emit(type, detail) {
+    this.dispatchEvent(new CustomEvent(type, { detail }));
+  }
+}
