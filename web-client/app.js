@@ -902,8 +902,8 @@ sDensity.set(local.params.density_scale);
 sExposure.set(local.params.exposure);
 sG.set(local.params.g);
 lightsToControls([
-  { kind: 'directional', direction: [0.4, 0.6, -0.7], irradiance: [2.5, 2.4, 2.2] },
-  { kind: 'environment', radiance: [0.25, 0.27, 0.3] },
+  { kind: 'directional', direction: [0.35, 0.75, -0.55], irradiance: [3.2, 3.1, 2.9] },
+  { kind: 'environment', radiance: [0.1, 0.11, 0.13] },
 ]);
 sJpeg.set(local.jpeg_quality);
 sIters.set(local.iterations);

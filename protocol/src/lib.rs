@@ -102,11 +102,11 @@ pub enum Light {
 pub fn default_lights() -> Vec<Light> {
     vec![
         Light::Directional {
-            direction: [0.4, 0.6, -0.7],
-            irradiance: [2.5, 2.4, 2.2],
+            direction: [0.35, 0.75, -0.55],
+            irradiance: [3.2, 3.1, 2.9],
         },
         Light::Environment {
-            radiance: [0.25, 0.27, 0.3],
+            radiance: [0.1, 0.11, 0.13],
         },
     ]
 }

@@ -7,7 +7,7 @@
 // The server URL comes from argv[2] or VOXLIGHT_URL (default http://127.0.0.1:8080/).
 // Screenshots go to VOXLIGHT_SCREENSHOTS (default /tmp). The browser is CHROMIUM_PATH
 // (default /usr/bin/chromium). VOXLIGHT_TIMEOUT_S scales every wait (default 60 s per step).
-// Prints one line per check and ends with `web viewer: N passed, M failed`; exits 1 when a
+// Prints one line per check and ends with `viewer: N passed, M failed`; exits 1 when a
 // check failed and 2 when the test could not run at all (no browser, server unreachable).
 
 import fs from 'node:fs';
@@ -26,7 +26,8 @@ function withIterations(url) {
 const SHOTS = process.env.VOXLIGHT_SCREENSHOTS || '/tmp';
 const CHROMIUM = process.env.CHROMIUM_PATH || '/usr/bin/chromium';
 const STEP_MS = 1000 * Number(process.env.VOXLIGHT_TIMEOUT_S || 60);
-const CT_PRESETS = ['bone', 'soft', 'vessels', 'lung'];
+// Soft tissue first: it differs most from the server's bone-weighted default CT TF.
+const CT_PRESETS = ['soft', 'lung', 'vessels', 'bone'];
 
 const results = /** @type {{name: string, ok: boolean, detail: string}[]} */ ([]);
 const consoleErrors = /** @type {string[]} */ ([]);
@@ -247,5 +248,5 @@ try {
 const passed = results.filter((r) => r.ok).length;
 const failed = results.length - passed;
 if (code !== 0) for (const r of results.filter((x) => !x.ok)) console.error(`failed: ${r.name}: ${r.detail}`);
-console.log(`web viewer: ${passed} passed, ${failed} failed`);
+console.log(`viewer: ${passed} passed, ${failed} failed`);
 process.exit(code === 0 && failed === 0 ? 0 : code || 1);

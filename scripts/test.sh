@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# Runs every test: the Rust workspace (unit, GPU on lavapipe or a real GPU, end to end with
+# scripted WebSocket clients), then the web viewer in headless Chromium against a real server.
+# Needs: a Vulkan adapter (apt-get install mesa-vulkan-drivers), ../shared/data (or
+# VOXLIGHT_DATA), node + npm, and Chromium at /usr/bin/chromium (or CHROMIUM_PATH).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+cargo test --workspace
+
+echo "== web viewer in headless Chromium =="
+cargo build -p voxlight-server --quiet
+port=$(python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
+log=$(mktemp)
+target/debug/voxlight serve --listen "127.0.0.1:$port" >"$log" 2>&1 &
+server=$!
+trap 'kill $server 2>/dev/null || true; rm -f "$log"' EXIT
+for _ in $(seq 1 100); do
+  curl -fsS "http://127.0.0.1:$port/healthz" >/dev/null 2>&1 && break
+  if ! kill -0 $server 2>/dev/null; then cat "$log"; echo "server exited early"; exit 1; fi
+  sleep 0.2
+done
+(cd tests/web && npm ci --no-audit --no-fund --loglevel=error)
+status=0
+VOXLIGHT_SCREENSHOTS="${VOXLIGHT_SCREENSHOTS:-target/screenshots}" node tests/web/viewer_test.mjs "http://127.0.0.1:$port/" || status=$?
+if [ $status -ne 0 ]; then
+  echo "---- server log ----"; tail -50 "$log"
+fi
+kill -TERM $server
+wait $server || true
+exit $status
