@@ -11,6 +11,7 @@
 @group(0) @binding(2) var<storage, read> tf_lut: array<vec4<f32>>;
 @group(0) @binding(3) var<storage, read> lights: array<GpuLight>;
 @group(0) @binding(4) var<storage, read_write> accum: array<vec4<f32>>;
+@group(0) @binding(5) var<storage, read> cell_max_opacity: array<f32>;
 
 // Below this view transmittance the march stops (relative bias at most 1e-4).
 const VIEW_T_CUTOFF: f32 = 1e-4;
@@ -34,17 +35,24 @@ fn transmittance(p: vec3<f32>, dir: vec3<f32>, t_max: f32, jitter: f32) -> f32 {
     let hit = intersect_box(p, dir, scene.box_min, scene.box_max);
     let t_end = min(hit.y, t_max);
     let step = scene.step * SHADOW_STEP_SCALE;
-    var t = hit.x + jitter * step;
     var tau = 0.0;
+    var k = 0.0;
     loop {
+        let t = hit.x + (k + jitter) * step;
         if (t >= t_end) {
             break;
         }
-        tau += medium_at(p + dir * t).a * step;
+        let x = p + dir * t;
+        let cell = cell_of((x - scene.box_min) / (scene.box_max - scene.box_min));
+        if (cell_is_empty(cell)) {
+            k = skip_empty_cell(p, dir, cell, hit.x, step, jitter, k);
+            continue;
+        }
+        tau += medium_at(x).a * step;
         if (tau > SHADOW_TAU_CUTOFF) {
             return 0.0;
         }
-        t += step;
+        k += 1.0;
     }
     return exp(-tau);
 }
@@ -94,12 +102,19 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         var weight_sum = 0.0;
         var chosen_pos = vec3<f32>(0.0);
         var chosen_albedo = vec3<f32>(0.0);
-        var t = hit.x + rng_next(&rng) * scene.step;
+        let jitter = rng_next(&rng);
+        var k = 0.0;
         loop {
+            let t = hit.x + (k + jitter) * scene.step;
             if (t >= hit.y || transmit < VIEW_T_CUTOFF) {
                 break;
             }
             let p = scene.eye + dir * t;
+            let cell = cell_of((p - scene.box_min) / (scene.box_max - scene.box_min));
+            if (cell_is_empty(cell)) {
+                k = skip_empty_cell(scene.eye, dir, cell, hit.x, scene.step, jitter, k);
+                continue;
+            }
             let m = medium_at(p);
             if (m.a > 0.0) {
                 let alpha = 1.0 - exp(-m.a * scene.step);
@@ -112,7 +127,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                 }
                 transmit *= 1.0 - alpha;
             }
-            t += scene.step;
+            k += 1.0;
         }
         radiance = scene.env_radiance * transmit;
         if (weight_sum > 0.0 && any(chosen_albedo > vec3<f32>(0.0))) {

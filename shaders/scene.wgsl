@@ -20,6 +20,9 @@ struct SceneUniforms {
     height: u32,
     iteration: u32,
     pad0: u32,
+    // Macrocells per axis and their edge in voxels (macrocell.wgsl).
+    cell_dims: vec3<u32>,
+    cell_voxels: u32,
 }
 
 const LIGHT_DIRECTIONAL: u32 = 0u;

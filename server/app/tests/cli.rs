@@ -36,7 +36,11 @@ fn render_writes_png_and_linear_pfm() {
         .arg(&pfm)
         .output()
         .unwrap();
-    assert!(output.status.success(), "render failed: {}", String::from_utf8_lossy(&output.stderr));
+    assert!(
+        output.status.success(),
+        "render failed: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
     assert!(std::fs::read(&png).unwrap().starts_with(b"\x89PNG"));
     let (w, h, rgb) = read_pfm(&pfm).unwrap();
     assert_eq!((w, h), (48, 32));
@@ -53,9 +57,21 @@ fn bad_scene_files_fail_with_a_message() {
     let dir = temp_dir("bad");
     let cases = [
         ("missing.json", None, "reading"),
-        ("typo.json", Some(r#"{"dataset":"phantom:sphere","widht":10}"#), "unknown field"),
-        ("dataset.json", Some(r#"{"dataset":"no/such/file.nrrd"}"#), "no/such/file.nrrd"),
-        ("viewport.json", Some(r#"{"dataset":"phantom:sphere","width":0}"#), "viewport"),
+        (
+            "typo.json",
+            Some(r#"{"dataset":"phantom:sphere","widht":10}"#),
+            "unknown field",
+        ),
+        (
+            "dataset.json",
+            Some(r#"{"dataset":"no/such/file.nrrd"}"#),
+            "no/such/file.nrrd",
+        ),
+        (
+            "viewport.json",
+            Some(r#"{"dataset":"phantom:sphere","width":0}"#),
+            "viewport",
+        ),
     ];
     for (name, body, expected) in cases {
         let scene = dir.join(name);
@@ -71,7 +87,10 @@ fn bad_scene_files_fail_with_a_message() {
             .unwrap();
         let stderr = String::from_utf8_lossy(&output.stderr);
         assert!(!output.status.success(), "{name} should fail");
-        assert!(stderr.contains(expected), "{name}: stderr does not mention `{expected}`: {stderr}");
+        assert!(
+            stderr.contains(expected),
+            "{name}: stderr does not mention `{expected}`: {stderr}"
+        );
         assert!(!stderr.contains("panicked"), "{name} panicked: {stderr}");
     }
     std::fs::remove_dir_all(dir).unwrap();
@@ -80,10 +99,19 @@ fn bad_scene_files_fail_with_a_message() {
 #[test]
 fn serve_refuses_a_missing_data_folder() {
     let output = voxlight()
-        .args(["serve", "--listen", "127.0.0.1:0", "--data", "/definitely/not/here"])
+        .args([
+            "serve",
+            "--listen",
+            "127.0.0.1:0",
+            "--data",
+            "/definitely/not/here",
+        ])
         .output()
         .unwrap();
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(!output.status.success());
-    assert!(stderr.contains("/definitely/not/here") && stderr.contains("does not exist"), "{stderr}");
+    assert!(
+        stderr.contains("/definitely/not/here") && stderr.contains("does not exist"),
+        "{stderr}"
+    );
 }

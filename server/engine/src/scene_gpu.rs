@@ -29,6 +29,8 @@ pub struct SceneUniforms {
     pub height: u32,
     pub iteration: u32,
     pub pad0: u32,
+    pub cell_dims: [u32; 3],
+    pub cell_voxels: u32,
 }
 
 pub const LIGHT_DIRECTIONAL: u32 = 0;
@@ -112,6 +114,8 @@ impl SceneUniforms {
             height: scene.viewport.height,
             iteration,
             pad0: 0,
+            cell_dims: volume.ranges.dims,
+            cell_voxels: crate::macrocell::CELL,
         })
     }
 }

@@ -4,12 +4,13 @@
 pub const COMMON: &str = include_str!("../../../shaders/common.wgsl");
 pub const VOLUME: &str = include_str!("../../../shaders/volume.wgsl");
 pub const SCENE: &str = include_str!("../../../shaders/scene.wgsl");
+pub const MACROCELL: &str = include_str!("../../../shaders/macrocell.wgsl");
 pub const RAYMARCH: &str = include_str!("../../../shaders/raymarch.wgsl");
 pub const TONEMAP: &str = include_str!("../../../shaders/tonemap.wgsl");
 
 /// The raymarch pass with its shared pieces.
 pub fn raymarch() -> String {
-    [COMMON, VOLUME, SCENE, RAYMARCH].concat()
+    [COMMON, VOLUME, SCENE, MACROCELL, RAYMARCH].concat()
 }
 
 pub fn tonemap() -> String {

@@ -81,6 +81,14 @@ pub fn bake(tf: &TransferFunction) -> Vec<[f32; 4]> {
         .collect()
 }
 
+/// What the shaders' `classify` returns for v: linear between the two nearest LUT entries.
+pub fn classify(lut: &[[f32; 4]], v: f32) -> [f32; 4] {
+    let x = v.clamp(0.0, 1.0) * (TF_LUT_SIZE - 1) as f32;
+    let i = (x as usize).min(TF_LUT_SIZE - 2);
+    let f = x - i as f32;
+    std::array::from_fn(|k| lut[i][k] + (lut[i + 1][k] - lut[i][k]) * f)
+}
+
 /// Bin of data value v: floor(v·(p−1)) as in the historygram paper's d(x) (p = 64).
 pub fn value_bin(v: f32) -> usize {
     ((v.clamp(0.0, 1.0) * (HISTOGRAM_BINS - 1) as f32) as usize).min(HISTOGRAM_BINS - 1)

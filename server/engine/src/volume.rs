@@ -2,6 +2,7 @@
 
 use voxlight_volumes::Volume;
 
+use crate::macrocell::RangeGrid;
 use crate::{EngineError, Gpu};
 
 pub struct GpuVolume {
@@ -12,6 +13,8 @@ pub struct GpuVolume {
     /// World-space box size, longest side 1 (DESIGN.md).
     pub extent: [f32; 3],
     pub bytes: u64,
+    /// Data range per macrocell, for empty-space skipping.
+    pub ranges: RangeGrid,
 }
 
 /// Slices uploaded per `write_texture` call, so staging memory stays small for big volumes.
@@ -104,6 +107,7 @@ impl GpuVolume {
             dims,
             extent: volume.world_extent(),
             bytes: Self::bytes_needed(gpu, dims),
+            ranges: RangeGrid::build(volume),
         })
     }
 }

@@ -102,7 +102,7 @@ fn rust_and_wgsl_layouts_agree() {
         "SceneUniforms",
         size_of::<SceneUniforms>(),
         fields!(SceneUniforms: eye, tan_half_fov, right, aspect, up, step, forward, density_scale, box_min, g,
-            box_max, light_count, env_radiance, seed, width, height, iteration, pad0),
+            box_max, light_count, env_radiance, seed, width, height, iteration, pad0, cell_dims, cell_voxels),
     );
     assert_layout(
         &raymarch,

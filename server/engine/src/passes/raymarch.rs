@@ -1,6 +1,7 @@
 //! The `raymarch` pass (shaders/raymarch.wgsl): one progressive single-scattering sample per
 //! pixel, added to the HDR accumulation buffer. Binds `SceneUniforms` and `GpuLight`
-//! (crate::scene_gpu), the volume texture, the TF lookup table and the accumulation buffer.
+//! (crate::scene_gpu), the volume texture, the TF lookup table, the accumulation buffer and the
+//! macrocells' largest opacity (crate::macrocell).
 
 use super::{compute_pipeline, image_workgroups, storage_entry, uniform_entry, volume_entry};
 use crate::Gpu;
@@ -17,6 +18,7 @@ pub struct RaymarchBindings<'a> {
     pub tf_lut: &'a wgpu::Buffer,
     pub lights: &'a wgpu::Buffer,
     pub accum: &'a wgpu::Buffer,
+    pub cell_max_opacity: &'a wgpu::Buffer,
 }
 
 impl RaymarchPass {
@@ -31,6 +33,7 @@ impl RaymarchPass {
                 storage_entry(2, true),
                 storage_entry(3, true),
                 storage_entry(4, false),
+                storage_entry(5, true),
             ],
         );
         Self { pipeline, layout }
@@ -60,6 +63,10 @@ impl RaymarchPass {
                 wgpu::BindGroupEntry {
                     binding: 4,
                     resource: b.accum.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 5,
+                    resource: b.cell_max_opacity.as_entire_binding(),
                 },
             ],
         })

@@ -17,6 +17,7 @@ pub struct Raymarch {
     tf_lut: wgpu::Buffer,
     lights: wgpu::Buffer,
     accum: wgpu::Buffer,
+    cell_max_opacity: wgpu::Buffer,
     bind_group: wgpu::BindGroup,
     width: u32,
     height: u32,
@@ -66,6 +67,11 @@ impl Raymarch {
             accum_bytes(width, height),
             wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
         );
+        let cell_max_opacity = buffer(
+            "raymarch cell max opacity",
+            (volume.ranges.cell_count() * 4) as u64,
+            wgpu::BufferUsages::STORAGE,
+        );
         let bind_group = engine.raymarch.bind_group(
             &engine.gpu,
             &RaymarchBindings {
@@ -74,6 +80,7 @@ impl Raymarch {
                 tf_lut: &tf_lut,
                 lights: &lights,
                 accum: &accum,
+                cell_max_opacity: &cell_max_opacity,
             },
         );
         let technique = Self {
@@ -82,6 +89,7 @@ impl Raymarch {
             tf_lut,
             lights,
             accum,
+            cell_max_opacity,
             bind_group,
             width,
             height,
@@ -94,10 +102,11 @@ impl Raymarch {
     }
 
     fn write_tf(&self, engine: &Engine, scene: &Scene) {
-        engine
-            .gpu
-            .queue
-            .write_buffer(&self.tf_lut, 0, bytemuck::cast_slice(&bake(&scene.tf)));
+        let lut = bake(&scene.tf);
+        let queue = &engine.gpu.queue;
+        queue.write_buffer(&self.tf_lut, 0, bytemuck::cast_slice(&lut));
+        let cells = self.volume.ranges.max_opacity(&lut);
+        queue.write_buffer(&self.cell_max_opacity, 0, bytemuck::cast_slice(&cells));
     }
 
     fn write_lights(&self, engine: &Engine, scene: &Scene) {
@@ -204,6 +213,7 @@ impl Technique for Raymarch {
             name: self.name(),
             iteration: self.iteration,
             memory_bytes: accum_bytes(self.width, self.height)
+                + self.cell_max_opacity.size()
                 + (TF_LUT_SIZE * 16) as u64
                 + (MAX_LIGHTS * size_of::<GpuLight>()) as u64
                 + size_of::<SceneUniforms>() as u64,
