@@ -41,13 +41,19 @@ pub struct TestServer {
 }
 
 impl TestServer {
+    /// A server whose default dataset is the small sphere phantom, without preloading.
     pub async fn start(data_dir: Option<PathBuf>) -> anyhow::Result<Self> {
-        let engine = voxlight_engine::Engine::with_gpu(engine_gpu())?;
-        let shutdown = CancellationToken::new();
-        let config = ServerConfig {
+        Self::start_with(ServerConfig {
             data_dir,
             default_dataset: Some("phantom:sphere".into()),
-        };
+            preload: false,
+        })
+        .await
+    }
+
+    pub async fn start_with(config: ServerConfig) -> anyhow::Result<Self> {
+        let engine = voxlight_engine::Engine::with_gpu(engine_gpu())?;
+        let shutdown = CancellationToken::new();
         let server = Server::start(&config, engine, shutdown.clone())?;
         let state = server.state.clone();
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;

@@ -259,7 +259,13 @@ async fn get_json(app: axum::Router, uri: &str) -> (StatusCode, serde_json::Valu
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn http_routes_list_datasets_and_serve_the_client() {
-    let server = TestServer::start(Some(shared_data())).await.unwrap();
+    let server = TestServer::start_with(voxlight_server::ServerConfig {
+        data_dir: Some(shared_data()),
+        default_dataset: None,
+        preload: true,
+    })
+    .await
+    .unwrap();
     let app = voxlight_server::app(server.state.clone());
     let (status, health) = get_json(app.clone(), "/healthz").await;
     assert_eq!(status, StatusCode::OK);

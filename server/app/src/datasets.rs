@@ -99,6 +99,26 @@ impl Catalog {
         Some(info)
     }
 
+    /// Loads every dataset once (one at a time, dropping each volume again) so that its details
+    /// are known. Blocking: run on its own thread.
+    pub fn preload(&self) {
+        for entry in &self.entries {
+            let name = &entry.info.name;
+            let known = self
+                .details
+                .lock()
+                .map(|d| d.contains_key(name))
+                .unwrap_or(true);
+            if known {
+                continue;
+            }
+            if let Err(e) = self.load(name) {
+                tracing::warn!(dataset = %name, error = %e, "dataset could not be preloaded");
+            }
+        }
+        tracing::info!(datasets = self.entries.len(), "dataset details preloaded");
+    }
+
     /// Loads (or shares the already loaded) volume. Blocking: call from `spawn_blocking`.
     pub fn load(&self, name: &str) -> Result<Arc<Volume>, DatasetError> {
         let entry = self

@@ -41,6 +41,9 @@ pub struct ServerConfig {
     pub data_dir: Option<PathBuf>,
     /// Dataset for clients that name none; `phantom:cornell` when unset.
     pub default_dataset: Option<String>,
+    /// Load every dataset once in the background at start-up so `/api/datasets` can show
+    /// dims, spacing, value range and histogram before anyone opens them.
+    pub preload: bool,
 }
 
 /// A started server core: the state for `app`, plus the render thread to join at the end.
@@ -71,6 +74,12 @@ impl Server {
             tracing::warn!(%adapter, "rendering on a software adapter (CPU): expect low frame rates");
         }
         let (render, render_thread) = render_service::spawn(Arc::new(engine))?;
+        if config.preload {
+            let catalog = catalog.clone();
+            std::thread::Builder::new()
+                .name("voxlight-preload".into())
+                .spawn(move || catalog.preload())?;
+        }
         let state = Arc::new(AppState {
             catalog,
             render,

@@ -31,6 +31,10 @@ enum Command {
         /// Dataset opened when a client names none (default: phantom:cornell).
         #[arg(long)]
         default_dataset: Option<String>,
+        /// Do not load every dataset in the background at start-up (then /api/datasets shows
+        /// dims, range and histogram only for datasets opened so far).
+        #[arg(long)]
+        no_preload: bool,
     },
     /// Render a scene file to a PNG (and optionally a PFM of linear radiance).
     Render {
@@ -72,11 +76,13 @@ fn main() -> anyhow::Result<()> {
             listen,
             data,
             default_dataset,
+            no_preload,
         } => serve(
             listen,
             ServerConfig {
                 data_dir: data,
                 default_dataset,
+                preload: !no_preload,
             },
         ),
         Command::Render { scene, out, pfm } => offline::render(&scene, &out, pfm.as_deref()),
