@@ -18,13 +18,6 @@ const VIEW_T_CUTOFF: f32 = 1e-4;
 // Above this optical depth a shadow ray counts as blocked (exp(-16) ≈ 1e-7).
 const SHADOW_TAU_CUTOFF: f32 = 16.0;
 
-// Albedo (rgb) and extinction sigma_t (a) at world position p.
-fn medium_at(p: vec3<f32>) -> vec4<f32> {
-    let u = (p - scene.box_min) / (scene.box_max - scene.box_min);
-    let c = classify(sample_volume(u));
-    return vec4<f32>(c.rgb, c.a * scene.density_scale);
-}
-
 // Shadow rays march with this multiple of the view step: the estimate of the optical depth
 // stays unbiased, only its variance grows, and shadow rays are most of the cost.
 const SHADOW_STEP_SCALE: f32 = 2.0;
@@ -110,7 +103,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                 break;
             }
             let p = scene.eye + dir * t;
-            let cell = cell_of((p - scene.box_min) / (scene.box_max - scene.box_min));
+            let cell = cell_of(box_relative(p));
             if (cell_is_empty(cell)) {
                 k = skip_empty_cell(scene.eye, dir, cell, hit.x, scene.step, jitter, k);
                 continue;

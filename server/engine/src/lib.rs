@@ -43,7 +43,8 @@ pub enum EngineError {
 /// Pipelines shared by every session on one GPU; sessions own only buffers and textures.
 pub struct Engine {
     pub gpu: Arc<Gpu>,
-    pub raymarch: passes::raymarch::RaymarchPass,
+    pub raymarch: passes::estimator::EstimatorPass,
+    pub pathtrace: passes::estimator::EstimatorPass,
     pub tonemap: passes::tonemap::TonemapPass,
     /// Most GPU bytes one session may allocate (besides the shared volume texture).
     pub session_budget: u64,
@@ -56,13 +57,15 @@ impl Engine {
     }
 
     pub fn with_gpu(gpu: Arc<Gpu>) -> Result<Self, EngineError> {
-        let raymarch = passes::raymarch::RaymarchPass::new(&gpu);
+        let raymarch = passes::raymarch::new(&gpu);
+        let pathtrace = passes::pathtrace::new(&gpu);
         let tonemap = passes::tonemap::TonemapPass::new(&gpu);
         gpu.check()?;
         let session_budget = gpu.limits.max_buffer_size.min(2 << 30);
         Ok(Self {
             gpu,
             raymarch,
+            pathtrace,
             tonemap,
             session_budget,
         })

@@ -6,7 +6,7 @@ use std::time::Duration;
 
 use crate::passes::tonemap::ToneParams;
 use crate::technique::{StepReport, Technique, TechniqueStats};
-use crate::techniques::raymarch::{Raymarch, accum_bytes};
+use crate::techniques::progressive::{Estimator, Progressive, accum_bytes};
 use crate::{Change, Engine, EngineError, GpuVolume, Scene};
 
 /// A tone-mapped picture read back from the GPU.
@@ -47,7 +47,18 @@ impl Renderer {
         scene.validate().map_err(EngineError::InvalidScene)?;
         check_budget(engine, scene)?;
         let technique: Box<dyn Technique> = match technique {
-            "raymarch" => Box::new(Raymarch::new(engine, volume.clone(), scene)?),
+            "raymarch" => Box::new(Progressive::new(
+                engine,
+                Estimator::Raymarch,
+                volume.clone(),
+                scene,
+            )?),
+            "pathtrace" => Box::new(Progressive::new(
+                engine,
+                Estimator::Pathtrace,
+                volume.clone(),
+                scene,
+            )?),
             other => return Err(EngineError::UnknownTechnique(other.to_owned())),
         };
         let (tone_params, rgba, tone_bind_group) =

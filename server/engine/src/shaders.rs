@@ -6,11 +6,17 @@ pub const VOLUME: &str = include_str!("../../../shaders/volume.wgsl");
 pub const SCENE: &str = include_str!("../../../shaders/scene.wgsl");
 pub const MACROCELL: &str = include_str!("../../../shaders/macrocell.wgsl");
 pub const RAYMARCH: &str = include_str!("../../../shaders/raymarch.wgsl");
+pub const PATHTRACE: &str = include_str!("../../../shaders/pathtrace.wgsl");
 pub const TONEMAP: &str = include_str!("../../../shaders/tonemap.wgsl");
 
 /// The raymarch pass with its shared pieces.
 pub fn raymarch() -> String {
     [COMMON, VOLUME, SCENE, MACROCELL, RAYMARCH].concat()
+}
+
+/// The path tracer with its shared pieces.
+pub fn pathtrace() -> String {
+    [COMMON, VOLUME, SCENE, MACROCELL, PATHTRACE].concat()
 }
 
 pub fn tonemap() -> String {
@@ -19,5 +25,9 @@ pub fn tonemap() -> String {
 
 /// Every composed shader by pass name, for validation.
 pub fn all() -> Vec<(&'static str, String)> {
-    vec![("raymarch", raymarch()), ("tonemap", tonemap())]
+    vec![
+        ("raymarch", raymarch()),
+        ("pathtrace", pathtrace()),
+        ("tonemap", tonemap()),
+    ]
 }

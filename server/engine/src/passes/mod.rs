@@ -1,6 +1,8 @@
 //! One module per WGSL compute pass: the pipeline, its bind group layout and the
 //! `#[repr(C)]` structs it binds.
 
+pub mod estimator;
+pub mod pathtrace;
 pub mod raymarch;
 pub mod tonemap;
 

@@ -1,17 +1,44 @@
-//! Technique `raymarch`: progressive single scattering (shaders/raymarch.wgsl).
+//! The progressive per-pixel techniques: each iteration adds one radiance sample per pixel to
+//! the HDR estimate. `raymarch` (shaders/raymarch.wgsl) is single scattering with shadow rays;
+//! `pathtrace` (shaders/pathtrace.wgsl) is the unbiased multiple-scattering reference. Both
+//! use the same per-session buffers.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use voxlight_protocol::MAX_LIGHTS;
 
-use crate::passes::raymarch::RaymarchBindings;
+use crate::passes::estimator::{EstimatorBindings, EstimatorPass};
 use crate::scene_gpu::{GpuLight, SceneUniforms, gpu_lights};
 use crate::technique::{StepReport, Technique, TechniqueStats};
 use crate::tf::{TF_LUT_SIZE, bake};
 use crate::{Change, Engine, EngineError, GpuVolume, Scene};
 
-pub struct Raymarch {
+/// Which estimator a `Progressive` technique runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Estimator {
+    Raymarch,
+    Pathtrace,
+}
+
+impl Estimator {
+    pub fn name(self) -> &'static str {
+        match self {
+            Estimator::Raymarch => "raymarch",
+            Estimator::Pathtrace => "pathtrace",
+        }
+    }
+
+    fn pass(self, engine: &Engine) -> &EstimatorPass {
+        match self {
+            Estimator::Raymarch => &engine.raymarch,
+            Estimator::Pathtrace => &engine.pathtrace,
+        }
+    }
+}
+
+pub struct Progressive {
+    estimator: Estimator,
     volume: Arc<GpuVolume>,
     scene_buf: wgpu::Buffer,
     tf_lut: wgpu::Buffer,
@@ -31,9 +58,10 @@ pub fn accum_bytes(width: u32, height: u32) -> u64 {
     width as u64 * height as u64 * 16
 }
 
-impl Raymarch {
+impl Progressive {
     pub fn new(
         engine: &Engine,
+        estimator: Estimator,
         volume: Arc<GpuVolume>,
         scene: &Scene,
     ) -> Result<Self, EngineError> {
@@ -47,34 +75,34 @@ impl Raymarch {
             })
         };
         let scene_buf = buffer(
-            "raymarch scene",
+            "estimator scene",
             size_of::<SceneUniforms>() as u64,
             wgpu::BufferUsages::UNIFORM,
         );
         let tf_lut = buffer(
-            "raymarch tf lut",
+            "estimator tf lut",
             (TF_LUT_SIZE * 16) as u64,
             wgpu::BufferUsages::STORAGE,
         );
         let lights = buffer(
-            "raymarch lights",
+            "estimator lights",
             (MAX_LIGHTS * size_of::<GpuLight>()) as u64,
             wgpu::BufferUsages::STORAGE,
         );
         let (width, height) = (scene.viewport.width, scene.viewport.height);
         let accum = buffer(
-            "raymarch accum",
+            "estimator accum",
             accum_bytes(width, height),
             wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
         );
         let cell_max_opacity = buffer(
-            "raymarch cell max opacity",
+            "estimator cell max opacity",
             (volume.ranges.cell_count() * 4) as u64,
             wgpu::BufferUsages::STORAGE,
         );
-        let bind_group = engine.raymarch.bind_group(
+        let bind_group = estimator.pass(engine).bind_group(
             &engine.gpu,
-            &RaymarchBindings {
+            &EstimatorBindings {
                 scene: &scene_buf,
                 volume: &volume.view,
                 tf_lut: &tf_lut,
@@ -84,6 +112,7 @@ impl Raymarch {
             },
         );
         let technique = Self {
+            estimator,
             volume,
             scene_buf,
             tf_lut,
@@ -120,9 +149,9 @@ impl Raymarch {
     }
 }
 
-impl Technique for Raymarch {
+impl Technique for Progressive {
     fn name(&self) -> &'static str {
-        "raymarch"
+        self.estimator.name()
     }
 
     fn apply(
@@ -135,7 +164,7 @@ impl Technique for Raymarch {
             Change::Tf { .. } => self.write_tf(engine, scene),
             Change::Lights => self.write_lights(engine, scene),
             Change::Viewport => {
-                *self = Raymarch::new(engine, self.volume.clone(), scene)?;
+                *self = Progressive::new(engine, self.estimator, self.volume.clone(), scene)?;
             }
             Change::Camera | Change::Params => {}
             // More iterations continue the same picture.
@@ -169,11 +198,14 @@ impl Technique for Raymarch {
                         .gpu
                         .device
                         .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                            label: Some("raymarch step"),
+                            label: Some(self.estimator.name()),
                         });
-                engine
-                    .raymarch
-                    .encode(&mut encoder, &self.bind_group, self.width, self.height);
+                self.estimator.pass(engine).encode(
+                    &mut encoder,
+                    &self.bind_group,
+                    self.width,
+                    self.height,
+                );
                 engine.gpu.queue.submit([encoder.finish()]);
                 self.iteration += 1;
             }
