@@ -115,3 +115,18 @@ fn serve_refuses_a_missing_data_folder() {
         "{stderr}"
     );
 }
+
+#[test]
+fn no_adapter_names_the_package_to_install() {
+    // Point the Vulkan loader at no driver at all: the only adapters wgpu could use vanish.
+    let output = voxlight()
+        .args(["serve", "--listen", "127.0.0.1:0"])
+        .env("VK_ICD_FILENAMES", "/nonexistent/icd.json")
+        .env("VK_DRIVER_FILES", "/nonexistent/icd.json")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success());
+    assert!(stderr.contains("mesa-vulkan-drivers"), "{stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+}
