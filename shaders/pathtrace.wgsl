@@ -51,8 +51,9 @@ fn delta_track(origin: vec3<f32>, dir: vec3<f32>, t0: f32, t1: f32, rng: ptr<fun
     return vec2<f32>(t1, 0.0);
 }
 
-// Transmittance from p along dir over at most t_max, by ratio tracking (unbiased).
-fn ratio_track(p: vec3<f32>, dir: vec3<f32>, t_max: f32, rng: ptr<function, Rng>) -> f32 {
+// Transmittance from p along dir over at most t_max, by ratio tracking (unbiased); the
+// shadow-ray estimator of lights.wgsl.
+fn shadow_transmittance(p: vec3<f32>, dir: vec3<f32>, t_max: f32, rng: ptr<function, Rng>) -> f32 {
     let hit = intersect_box(p, dir, scene.box_min, scene.box_max);
     let t1 = min(hit.y, t_max);
     var t = hit.x;
@@ -85,25 +86,6 @@ fn ratio_track(p: vec3<f32>, dir: vec3<f32>, t_max: f32, rng: ptr<function, Rng>
     return tr;
 }
 
-// Radiance from every directional and point light scattered at p toward -dir, per unit albedo.
-fn next_event(p: vec3<f32>, dir: vec3<f32>, rng: ptr<function, Rng>) -> vec3<f32> {
-    var s = vec3<f32>(0.0);
-    for (var i = 0u; i < scene.light_count; i++) {
-        let light = lights[i];
-        if (light.kind == LIGHT_DIRECTIONAL) {
-            let tr = ratio_track(p, -light.vector, 1e30, rng);
-            s += light.color * tr * phase_hg(dot(light.vector, -dir), scene.g);
-        } else {
-            let offset = light.vector - p;
-            let dist = length(offset);
-            let to_light = offset / max(dist, 1e-6);
-            let tr = ratio_track(p, to_light, dist, rng);
-            s += light.color / max(dist * dist, 1e-8) * tr * phase_hg(dot(-to_light, -dir), scene.g);
-        }
-    }
-    return s;
-}
-
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (gid.x >= scene.width || gid.y >= scene.height) {
@@ -132,7 +114,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         if (all(weight <= vec3<f32>(0.0))) {
             break;
         }
-        radiance += weight * next_event(p, dir, &rng);
+        radiance += weight * direct_light(p, dir, &rng);
         if (bounce >= ROULETTE_START) {
             let survive = min(max(weight.x, max(weight.y, weight.z)), 1.0);
             if (rng_next(&rng) >= survive) {

@@ -50,24 +50,14 @@ fn transmittance(p: vec3<f32>, dir: vec3<f32>, t_max: f32, jitter: f32) -> f32 {
     return exp(-tau);
 }
 
+// Shadow rays of lights.wgsl: the jittered march with a fresh jitter.
+fn shadow_transmittance(p: vec3<f32>, dir: vec3<f32>, t_max: f32, rng: ptr<function, Rng>) -> f32 {
+    return transmittance(p, dir, t_max, rng_next(rng));
+}
+
 // Radiance scattered toward -view_dir at p per unit scattering albedo.
 fn in_scattered(p: vec3<f32>, view_dir: vec3<f32>, rng: ptr<function, Rng>) -> vec3<f32> {
-    var s = vec3<f32>(0.0);
-    for (var i = 0u; i < scene.light_count; i++) {
-        let light = lights[i];
-        if (light.kind == LIGHT_DIRECTIONAL) {
-            let to_light = -light.vector;
-            let tr = transmittance(p, to_light, 1e30, rng_next(rng));
-            s += light.color * tr * phase_hg(dot(light.vector, -view_dir), scene.g);
-        } else {
-            let offset = light.vector - p;
-            let dist = length(offset);
-            let to_light = offset / max(dist, 1e-6);
-            let tr = transmittance(p, to_light, dist, rng_next(rng));
-            let irradiance = light.color / max(dist * dist, 1e-8);
-            s += irradiance * tr * phase_hg(dot(-to_light, -view_dir), scene.g);
-        }
-    }
+    var s = direct_light(p, view_dir, rng);
     if (any(scene.env_radiance > vec3<f32>(0.0))) {
         // Direction toward the environment sampled by the phase function: weight 1.
         let u1 = rng_next(rng);

@@ -4,6 +4,7 @@
 pub const COMMON: &str = include_str!("../../../shaders/common.wgsl");
 pub const VOLUME: &str = include_str!("../../../shaders/volume.wgsl");
 pub const SCENE: &str = include_str!("../../../shaders/scene.wgsl");
+pub const LIGHTS: &str = include_str!("../../../shaders/lights.wgsl");
 pub const MACROCELL: &str = include_str!("../../../shaders/macrocell.wgsl");
 pub const RAYMARCH: &str = include_str!("../../../shaders/raymarch.wgsl");
 pub const PATHTRACE: &str = include_str!("../../../shaders/pathtrace.wgsl");
@@ -11,12 +12,12 @@ pub const TONEMAP: &str = include_str!("../../../shaders/tonemap.wgsl");
 
 /// The raymarch pass with its shared pieces.
 pub fn raymarch() -> String {
-    [COMMON, VOLUME, SCENE, MACROCELL, RAYMARCH].concat()
+    [COMMON, VOLUME, SCENE, MACROCELL, LIGHTS, RAYMARCH].concat()
 }
 
 /// The path tracer with its shared pieces.
 pub fn pathtrace() -> String {
-    [COMMON, VOLUME, SCENE, MACROCELL, PATHTRACE].concat()
+    [COMMON, VOLUME, SCENE, MACROCELL, LIGHTS, PATHTRACE].concat()
 }
 
 pub fn tonemap() -> String {

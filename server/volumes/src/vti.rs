@@ -393,16 +393,7 @@ fn parse_ascii(
             ),
         ));
     }
-    Ok(match ty {
-        SampleType::U8 => Samples::U8(vals.iter().map(|&v| v as u8).collect()),
-        SampleType::I8 => Samples::I8(vals.iter().map(|&v| v as i8).collect()),
-        SampleType::U16 => Samples::U16(vals.iter().map(|&v| v as u16).collect()),
-        SampleType::I16 => Samples::I16(vals.iter().map(|&v| v as i16).collect()),
-        SampleType::U32 => Samples::U32(vals.iter().map(|&v| v as u32).collect()),
-        SampleType::I32 => Samples::I32(vals.iter().map(|&v| v as i32).collect()),
-        SampleType::F32 => Samples::F32(vals.iter().map(|&v| v as f32).collect()),
-        SampleType::F64 => Samples::F64(vals),
-    })
+    Ok(Samples::from_f64(ty, vals))
 }
 
 /// Loads a `.vti` file.
