@@ -193,6 +193,7 @@ async fn converged_picture_arrives_as_lossless_png_with_stats() {
         panic!("expected stats, got {message:?}")
     };
     assert!(stats.converged && stats.iteration == 6, "{stats:?}");
+    assert!(stats.gpu_ms > 0.0, "GPU time is measured: {stats:?}");
     assert!(saw_stats || saw_jpeg_quality || last.meta.iteration == 6);
     client.close().await;
     server.stop().await.unwrap();

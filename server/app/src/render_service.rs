@@ -29,7 +29,10 @@ pub struct RenderedFrame {
     pub technique: &'static str,
     /// The session's edit counter when this picture's state was applied.
     pub scene_version: u64,
+    /// Wall time of the slice: progressive work, tone mapping and readback.
     pub render_ms: f32,
+    /// GPU time of the slice's technique passes (timestamp queries where available).
+    pub gpu_ms: f32,
     pub stats: TechniqueStats,
 }
 
@@ -311,14 +314,15 @@ impl RenderThread {
         let result = session
             .renderer
             .step(&engine, &session.scene, TIME_SLICE)
-            .and_then(|_| session.renderer.frame(&engine, &session.scene));
+            .and_then(|report| Ok((report, session.renderer.frame(&engine, &session.scene)?)));
         match result {
-            Ok(frame) => {
+            Ok((report, frame)) => {
                 session.dirty = !frame.converged;
                 let rendered = RenderedFrame {
                     technique: session.renderer.technique_name(),
                     scene_version: session.version,
                     render_ms: started.elapsed().as_secs_f32() * 1000.0,
+                    gpu_ms: report.gpu_time.as_secs_f32() * 1000.0,
                     stats: session.renderer.stats(),
                     frame,
                 };

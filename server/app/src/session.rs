@@ -601,7 +601,7 @@ fn encode_frame(
         iteration: frame.iteration,
         target_iterations: frame.target_iterations,
         converged: frame.converged,
-        gpu_ms: rendered.render_ms,
+        gpu_ms: rendered.gpu_ms,
         memory_bytes: rendered.stats.memory_bytes,
         fps: 0.0,
     };

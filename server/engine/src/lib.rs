@@ -4,6 +4,7 @@
 
 pub mod camera;
 pub mod gpu;
+pub mod gpu_timer;
 pub mod macrocell;
 pub mod passes;
 pub mod renderer;

@@ -12,7 +12,8 @@ pub struct StepReport {
     /// Iterations accumulated in the current picture.
     pub iteration: u32,
     pub converged: bool,
-    /// Wall time the GPU work of this call took (submission to completion).
+    /// GPU time of this call's passes: from timestamp queries where the adapter has them,
+    /// else the wall time from submission to completion.
     pub gpu_time: Duration,
 }
 

@@ -154,6 +154,37 @@ fn same_seed_same_picture_other_seed_other_noise() {
 }
 
 #[test]
+fn step_reports_gpu_time() {
+    let (_, volume) = sphere(32);
+    let s = scene(
+        ramp_tf(0.5),
+        vec![Light::Environment { radiance: [1.0; 3] }],
+        10.0,
+        32,
+        2,
+    );
+    let engine = engine();
+    let mut renderer = engine.create_renderer("raymarch", volume, &s).unwrap();
+    let started = std::time::Instant::now();
+    let report = renderer
+        .step(engine, &s, std::time::Duration::from_secs(5))
+        .unwrap();
+    let wall = started.elapsed();
+    assert_eq!(report.iteration, 2);
+    assert!(report.converged);
+    assert!(report.gpu_time > std::time::Duration::ZERO);
+    assert!(
+        report.gpu_time <= wall,
+        "GPU time {:?} exceeds the wall time {wall:?}",
+        report.gpu_time
+    );
+    eprintln!(
+        "timestamps: {}, gpu {:?}, wall {wall:?}",
+        engine.gpu.has_timestamps, report.gpu_time
+    );
+}
+
+#[test]
 fn oversized_viewport_is_refused() {
     let (_, volume) = sphere(16);
     let mut s = scene(ramp_tf(1.0), vec![], 1.0, 64, 1);

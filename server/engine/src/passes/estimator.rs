@@ -84,10 +84,11 @@ impl EstimatorPass {
         bind_group: &wgpu::BindGroup,
         width: u32,
         height: u32,
+        timestamp_writes: Option<wgpu::ComputePassTimestampWrites>,
     ) {
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some(self.label),
-            timestamp_writes: None,
+            timestamp_writes,
         });
         pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, bind_group, &[]);

@@ -8,6 +8,7 @@ use std::time::{Duration, Instant};
 
 use voxlight_protocol::MAX_LIGHTS;
 
+use crate::gpu_timer::GpuTimer;
 use crate::passes::estimator::{EstimatorBindings, EstimatorPass};
 use crate::scene_gpu::{GpuLight, SceneUniforms, gpu_lights};
 use crate::technique::{StepReport, Technique, TechniqueStats};
@@ -51,6 +52,7 @@ pub struct Progressive {
     iteration: u32,
     /// Iterations submitted per wait, adapted to the step budget.
     batch: u32,
+    timer: Option<GpuTimer>,
 }
 
 /// Bytes of the HDR accumulation buffer for a viewport.
@@ -124,6 +126,7 @@ impl Progressive {
             height,
             iteration: 0,
             batch: 1,
+            timer: GpuTimer::new(&engine.gpu, estimator.name()),
         };
         technique.write_tf(engine, scene);
         technique.write_lights(engine, scene);
@@ -183,10 +186,11 @@ impl Technique for Progressive {
         let target = scene.target_iterations;
         let start = Instant::now();
         let mut done = 0;
+        let mut gpu_time = Duration::ZERO;
         while self.iteration < target {
             let batch = self.batch.min(target - self.iteration);
             let batch_start = Instant::now();
-            for _ in 0..batch {
+            for i in 0..batch {
                 let uniforms = SceneUniforms::new(scene, &self.volume, self.iteration)
                     .map_err(EngineError::InvalidScene)?;
                 engine
@@ -200,16 +204,26 @@ impl Technique for Progressive {
                         .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                             label: Some(self.estimator.name()),
                         });
+                let last = i + 1 == batch;
+                let writes = self.timer.as_ref().and_then(|t| t.writes(i == 0, last));
                 self.estimator.pass(engine).encode(
                     &mut encoder,
                     &self.bind_group,
                     self.width,
                     self.height,
+                    writes,
                 );
+                if let (true, Some(timer)) = (last, &self.timer) {
+                    timer.resolve(&mut encoder);
+                }
                 engine.gpu.queue.submit([encoder.finish()]);
                 self.iteration += 1;
             }
             engine.gpu.wait_idle()?;
+            gpu_time += match &self.timer {
+                Some(timer) => timer.read(&engine.gpu)?,
+                None => batch_start.elapsed(),
+            };
             done += batch;
             // Fill about half the remaining budget with the next batch.
             let per_iteration = batch_start.elapsed() / batch;
@@ -228,7 +242,7 @@ impl Technique for Progressive {
             iterations_done: done,
             iteration: self.iteration,
             converged: self.iteration >= target,
-            gpu_time: start.elapsed(),
+            gpu_time,
         })
     }
 
