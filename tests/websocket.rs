@@ -122,6 +122,20 @@ async fn hello_welcome_frames_tf_edit_and_garbage() {
         .await
         .unwrap();
     assert_error(&client.recv_text().await.unwrap(), ErrorCode::NotReady);
+    // A viewport the protocol allows but this GPU cannot hold is refused before allocation
+    // (lavapipe binds at most 128 MiB per storage buffer: 8 Mi pixels of HDR accumulation).
+    let max_pixels = server.state.max_viewport_pixels;
+    assert!(
+        max_pixels >= 1024 * 1024,
+        "a 1024² viewport must fit: {max_pixels}"
+    );
+    if 4096 * 4096 > max_pixels {
+        client
+            .send_json(json!({"type": "viewport", "width": 4096, "height": 4096}))
+            .await
+            .unwrap();
+        assert_error(&client.recv_text().await.unwrap(), ErrorCode::GpuMemory);
+    }
 
     client
         .send_json(json!({"type": "camera", "eye": [2.0, -1.0, 0.5], "target": [0, 0, 0], "up": [0, 0, 1], "fov_deg": 35}))

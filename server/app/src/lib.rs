@@ -30,6 +30,8 @@ pub struct AppState {
     pub techniques: Vec<TechniqueInfo>,
     pub adapter: String,
     pub software_renderer: bool,
+    /// Largest viewport (width × height) one session may render on this GPU.
+    pub max_viewport_pixels: u64,
     pub default_dataset: String,
     pub shutdown: CancellationToken,
     pub tracker: TaskTracker,
@@ -70,6 +72,7 @@ impl Server {
         let techniques = engine.techniques();
         let adapter = engine.gpu.adapter_name();
         let software_renderer = engine.gpu.is_software();
+        let max_viewport_pixels = engine.max_viewport_pixels();
         if software_renderer {
             tracing::warn!(%adapter, "rendering on a software adapter (CPU): expect low frame rates");
         }
@@ -86,6 +89,7 @@ impl Server {
             techniques,
             adapter,
             software_renderer,
+            max_viewport_pixels,
             default_dataset,
             shutdown,
             tracker: TaskTracker::new(),

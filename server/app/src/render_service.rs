@@ -81,7 +81,9 @@ pub enum Command {
 /// Maps engine errors to protocol error codes.
 pub fn error_code(error: &EngineError) -> ErrorCode {
     match error {
-        EngineError::OutOfMemory { .. } => ErrorCode::GpuMemory,
+        EngineError::OutOfMemory { .. } | EngineError::ViewportTooLarge { .. } => {
+            ErrorCode::GpuMemory
+        }
         EngineError::UnknownTechnique(_) => ErrorCode::UnknownTechnique,
         EngineError::InvalidScene(_) => ErrorCode::BadValue,
         EngineError::NoAdapter(_) | EngineError::Gpu(_) | EngineError::DeviceLost => ErrorCode::Gpu,

@@ -15,7 +15,7 @@ use voxlight_engine::scene::{validate_lights, validate_params, validate_viewport
 use voxlight_engine::{Change, Scene};
 use voxlight_protocol::{
     ClientMessage, ErrorCode, FrameFormat, FrameMeta, MAX_MESSAGE_BYTES, PROTOCOL_VERSION,
-    RenderParams, ServerMessage, SessionState, Stats, join_frame,
+    RenderParams, ServerMessage, SessionState, Stats, Viewport, join_frame,
 };
 
 use crate::AppState;
@@ -213,6 +213,22 @@ async fn load_dataset(
         .map_err(|e| Reply::new(ErrorCode::LoadFailed, e.to_string()))
 }
 
+/// A viewport the protocol allows and this GPU can hold.
+fn check_viewport(state: &AppState, viewport: &Viewport) -> Result<(), Reply> {
+    validate_viewport(viewport).map_err(Reply::bad)?;
+    let pixels = viewport.width as u64 * viewport.height as u64;
+    if pixels > state.max_viewport_pixels {
+        return Err(Reply::new(
+            ErrorCode::GpuMemory,
+            format!(
+                "a {}×{} viewport is {pixels} pixels; this GPU allows at most {} per session",
+                viewport.width, viewport.height, state.max_viewport_pixels
+            ),
+        ));
+    }
+    Ok(())
+}
+
 fn check_technique(state: &AppState, name: &str) -> Result<(), Reply> {
     if state.techniques.iter().any(|t| t.name == name) {
         Ok(())
@@ -253,7 +269,7 @@ async fn open_session(state: &Arc<AppState>, hello: ClientMessage) -> Result<Ope
         ));
     }
     let viewport = viewport.unwrap_or_default();
-    validate_viewport(&viewport).map_err(Reply::bad)?;
+    check_viewport(state, &viewport)?;
     let technique = technique.unwrap_or_else(|| "raymarch".to_owned());
     check_technique(state, &technique)?;
     let dataset = dataset.unwrap_or_else(|| state.default_dataset.clone());
@@ -382,7 +398,7 @@ async fn handle_message(
             Change::Lights
         }
         ClientMessage::Viewport(viewport) => {
-            validate_viewport(&viewport).map_err(Reply::bad)?;
+            check_viewport(state, &viewport)?;
             if viewport == scene.viewport {
                 return Ok(());
             }

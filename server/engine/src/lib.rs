@@ -35,6 +35,15 @@ pub enum EngineError {
     DeviceLost,
     #[error("needs {needed} bytes of GPU memory, {available} available")]
     OutOfMemory { needed: u64, available: u64 },
+    #[error(
+        "a {width}×{height} viewport needs {needed} bytes of GPU buffers; this GPU allows at most {max_pixels} pixels per session"
+    )]
+    ViewportTooLarge {
+        width: u32,
+        height: u32,
+        needed: u64,
+        max_pixels: u64,
+    },
     #[error("unknown technique `{0}`")]
     UnknownTechnique(String),
     #[error("invalid scene: {0}")]
@@ -70,6 +79,19 @@ impl Engine {
             tonemap,
             session_budget,
         })
+    }
+
+    /// Largest width × height a session may render: its buffers must fit the per-session
+    /// budget, and the HDR accumulation buffer (16 bytes a pixel) one storage binding.
+    pub fn max_viewport_pixels(&self) -> u64 {
+        let per_pixel = renderer::session_bytes(2, 1) - renderer::session_bytes(1, 1);
+        let by_budget = self
+            .session_budget
+            .saturating_sub(renderer::session_bytes(1, 1))
+            / per_pixel
+            + 1;
+        let by_binding = self.gpu.limits.max_storage_buffer_binding_size / 16;
+        by_budget.min(by_binding)
     }
 
     /// The techniques this engine offers.

@@ -181,11 +181,14 @@ impl Renderer {
 }
 
 fn check_budget(engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
-    let needed = session_bytes(scene.viewport.width, scene.viewport.height);
-    if needed > engine.session_budget {
-        return Err(EngineError::OutOfMemory {
-            needed,
-            available: engine.session_budget,
+    let (width, height) = (scene.viewport.width, scene.viewport.height);
+    let max_pixels = engine.max_viewport_pixels();
+    if width as u64 * height as u64 > max_pixels {
+        return Err(EngineError::ViewportTooLarge {
+            width,
+            height,
+            needed: session_bytes(width, height),
+            max_pixels,
         });
     }
     Ok(())
