@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # Runs every test: the Rust workspace (unit, GPU on lavapipe or a real GPU, end to end with
 # scripted WebSocket clients), then the web viewer in headless Chromium against a real server.
+# Then the independent physics reference: pathtrace and raymarch against Mitsuba 3.
 # Needs: a Vulkan adapter (apt-get install mesa-vulkan-drivers), ../shared/data (or
-# VOXLIGHT_DATA), node + npm, and Chromium at /usr/bin/chromium (or CHROMIUM_PATH).
+# VOXLIGHT_DATA), node + npm, Chromium at /usr/bin/chromium (or CHROMIUM_PATH), and Python 3
+# with `pip install mitsuba numpy` (Mitsuba's LLVM variant needs Debian's libllvm19).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -28,4 +30,10 @@ if [ $status -ne 0 ]; then
 fi
 kill -TERM $server
 wait $server || true
-exit $status
+[ $status -eq 0 ] || exit $status
+
+echo "== independent reference: Mitsuba 3 =="
+for technique in pathtrace raymarch; do
+  python3 scripts/compare_mitsuba.py --technique "$technique" --size 64 --spp 256 \
+    --voxlight target/debug/voxlight --out "target/mitsuba/$technique"
+done
