@@ -3,7 +3,7 @@
 //! buffer. Binds `SceneUniforms` and `GpuLight` (crate::scene_gpu), the volume texture, the TF
 //! lookup table, the accumulation buffer and the macrocells' largest opacity (crate::macrocell).
 
-use super::{compute_pipeline, image_workgroups, storage_entry, uniform_entry, volume_entry};
+use super::{compute_pipeline, dispatch_image, storage_entry, uniform_entry, volume_entry};
 use crate::Gpu;
 
 pub struct EstimatorPass {
@@ -86,13 +86,13 @@ impl EstimatorPass {
         height: u32,
         timestamp_writes: Option<wgpu::ComputePassTimestampWrites>,
     ) {
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some(self.label),
+        dispatch_image(
+            encoder,
+            self.label,
+            &self.pipeline,
+            bind_group,
+            (width, height),
             timestamp_writes,
-        });
-        pass.set_pipeline(&self.pipeline);
-        pass.set_bind_group(0, bind_group, &[]);
-        let (x, y) = image_workgroups(width, height);
-        pass.dispatch_workgroups(x, y, 1);
+        );
     }
 }

@@ -80,7 +80,20 @@ pub(crate) fn compute_pipeline(
     (pipeline, layout)
 }
 
-/// Workgroups covering a width × height image.
-pub(crate) fn image_workgroups(width: u32, height: u32) -> (u32, u32) {
-    (width.div_ceil(TILE), height.div_ceil(TILE))
+/// One compute pass running `pipeline` over a width × height image in TILE² workgroups.
+pub(crate) fn dispatch_image(
+    encoder: &mut wgpu::CommandEncoder,
+    label: &str,
+    pipeline: &wgpu::ComputePipeline,
+    bind_group: &wgpu::BindGroup,
+    (width, height): (u32, u32),
+    timestamp_writes: Option<wgpu::ComputePassTimestampWrites>,
+) {
+    let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+        label: Some(label),
+        timestamp_writes,
+    });
+    pass.set_pipeline(pipeline);
+    pass.set_bind_group(0, bind_group, &[]);
+    pass.dispatch_workgroups(width.div_ceil(TILE), height.div_ceil(TILE), 1);
 }

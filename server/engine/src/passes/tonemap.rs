@@ -2,7 +2,7 @@
 
 use bytemuck::{Pod, Zeroable};
 
-use super::{compute_pipeline, image_workgroups, storage_entry, uniform_entry};
+use super::{compute_pipeline, dispatch_image, storage_entry, uniform_entry};
 use crate::Gpu;
 
 /// Matches `ToneParams` in tonemap.wgsl.
@@ -69,13 +69,13 @@ impl TonemapPass {
         width: u32,
         height: u32,
     ) {
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("tonemap"),
-            timestamp_writes: None,
-        });
-        pass.set_pipeline(&self.pipeline);
-        pass.set_bind_group(0, bind_group, &[]);
-        let (x, y) = image_workgroups(width, height);
-        pass.dispatch_workgroups(x, y, 1);
+        dispatch_image(
+            encoder,
+            "tonemap",
+            &self.pipeline,
+            bind_group,
+            (width, height),
+            None,
+        );
     }
 }
