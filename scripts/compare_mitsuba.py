@@ -80,7 +80,7 @@ def main() -> int:
     ap.add_argument("--voxlight", default=str(REPO / "target/release/voxlight"))
     ap.add_argument("--out", default=str(REPO / "target/mitsuba"))
     args = ap.parse_args()
-    out = pathlib.Path(args.out)
+    out = pathlib.Path(args.out).resolve()  # the scene file names the volume by absolute path
     out.mkdir(parents=True, exist_ok=True)
 
     volume = blobs(args.grid)
