@@ -47,6 +47,7 @@ impl TestServer {
             data_dir,
             default_dataset: Some("phantom:sphere".into()),
             preload: false,
+            access: Default::default(),
         })
         .await
     }
@@ -165,6 +166,38 @@ impl Client {
     pub async fn connect(url: &str) -> anyhow::Result<Self> {
         let (ws, _) = tokio_tungstenite::connect_async(url).await?;
         Ok(Self { ws })
+    }
+
+    /// Connects with extra request headers (token, Origin, subprotocols). Returns the
+    /// client and the server's `Sec-WebSocket-Protocol` answer, or the refusal's HTTP status.
+    pub async fn connect_with(
+        url: &str,
+        headers: &[(&str, &str)],
+    ) -> Result<(Self, Option<String>), u16> {
+        use tokio_tungstenite::tungstenite::client::IntoClientRequest;
+        let mut request = url.into_client_request().map_err(|_| 0u16)?;
+        for (name, value) in headers {
+            let name =
+                tokio_tungstenite::tungstenite::http::HeaderName::from_bytes(name.as_bytes())
+                    .map_err(|_| 0u16)?;
+            request
+                .headers_mut()
+                .insert(name, value.parse().map_err(|_| 0u16)?);
+        }
+        match tokio_tungstenite::connect_async(request).await {
+            Ok((ws, response)) => {
+                let protocol = response
+                    .headers()
+                    .get("sec-websocket-protocol")
+                    .and_then(|v| v.to_str().ok())
+                    .map(str::to_owned);
+                Ok((Self { ws }, protocol))
+            }
+            Err(tokio_tungstenite::tungstenite::Error::Http(response)) => {
+                Err(response.status().as_u16())
+            }
+            Err(_) => Err(0),
+        }
     }
 
     pub async fn send_json(&mut self, value: serde_json::Value) -> anyhow::Result<()> {

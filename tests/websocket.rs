@@ -278,6 +278,7 @@ async fn http_routes_list_datasets_and_serve_the_client() {
         data_dir: Some(shared_data()),
         default_dataset: None,
         preload: true,
+        access: Default::default(),
     })
     .await
     .unwrap();
@@ -356,5 +357,119 @@ async fn chest_ct_opens_by_name_with_hounsfield_range_and_spacing() {
         .await
         .unwrap();
     client.close().await;
+    server.stop().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tokens_and_origins_are_checked_before_the_upgrade() {
+    let server = TestServer::start_with(voxlight_server::ServerConfig {
+        data_dir: None,
+        default_dataset: Some("phantom:sphere".into()),
+        preload: false,
+        access: voxlight_server::auth::Access {
+            tokens: vec!["s3cret".into()],
+            allowed_origins: vec!["https://viewer.example".into()],
+        },
+    })
+    .await
+    .unwrap();
+    let url = server.ws_url();
+    let host = server.addr.to_string();
+    let refused = |r: Result<(Client, Option<String>), u16>| r.err();
+    assert_eq!(
+        refused(Client::connect_with(&url, &[]).await),
+        Some(401),
+        "no token"
+    );
+    assert_eq!(
+        refused(Client::connect_with(&url, &[("Authorization", "Bearer guess")]).await),
+        Some(401),
+        "wrong token"
+    );
+    let own_origin = format!("http://{host}");
+    assert_eq!(
+        refused(
+            Client::connect_with(
+                &url,
+                &[
+                    ("Authorization", "Bearer s3cret"),
+                    ("Origin", "https://evil.example")
+                ]
+            )
+            .await
+        ),
+        Some(403),
+        "foreign origin, even with a valid token"
+    );
+    // A script with a bearer token.
+    let (mut client, _) = Client::connect_with(&url, &[("Authorization", "Bearer s3cret")])
+        .await
+        .unwrap();
+    client.hello(None, 32, 32).await.unwrap();
+    client.frame_where(|_| true).await.unwrap();
+    client.close().await;
+    // A browser page of this server, token in the subprotocol: the server answers `voxlight`.
+    let (mut client, protocol) = Client::connect_with(
+        &url,
+        &[
+            ("Origin", own_origin.as_str()),
+            ("Sec-WebSocket-Protocol", "voxlight, voxlight.token.s3cret"),
+        ],
+    )
+    .await
+    .unwrap();
+    assert_eq!(protocol.as_deref(), Some("voxlight"));
+    client.hello(None, 32, 32).await.unwrap();
+    client.close().await;
+    // An allow-listed origin.
+    let (client, _) = Client::connect_with(
+        &url,
+        &[
+            ("Origin", "https://viewer.example"),
+            ("Authorization", "Bearer s3cret"),
+        ],
+    )
+    .await
+    .unwrap();
+    client.close().await;
+    // The dataset list needs the token too.
+    let app = voxlight_server::app(server.state.clone());
+    let (status, body) = get_json(app.clone(), "/api/datasets").await;
+    assert_eq!(status, StatusCode::UNAUTHORIZED);
+    assert_eq!(body["error"], "unauthorized");
+    let authorized = Request::get("/api/datasets")
+        .header("Authorization", "Bearer s3cret")
+        .body(Body::empty())
+        .unwrap();
+    assert_eq!(
+        app.oneshot(authorized).await.unwrap().status(),
+        StatusCode::OK
+    );
+    server.stop().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_flood_is_rate_limited_and_the_session_survives() {
+    let server = TestServer::start(None).await.unwrap();
+    let mut client = Client::connect(&server.ws_url()).await.unwrap();
+    client.hello(None, 32, 32).await.unwrap();
+    let camera = json!({"type": "camera", "eye": [0.3, -2.4, 0.1], "target": [0, 0, 0], "up": [0, 0, 1], "fov_deg": 30});
+    let burst = 3 * voxlight_protocol::MAX_MESSAGES_PER_SECOND;
+    for _ in 0..burst {
+        client.send_json(camera.clone()).await.unwrap();
+    }
+    assert_error(&client.recv_text().await.unwrap(), ErrorCode::RateLimited);
+    // After a pause the session takes edits again and renders them.
+    tokio::time::sleep(std::time::Duration::from_secs(2)).await;
+    client
+        .send_json(json!({"type": "camera", "eye": [2.4, 0.0, 0.2], "target": [0, 0, 0], "up": [0, 0, 1], "fov_deg": 30}))
+        .await
+        .unwrap();
+    let accepted = 2 * voxlight_protocol::MAX_MESSAGES_PER_SECOND as u64;
+    let frame = client
+        .frame_where(|f| f.meta.scene_version > accepted)
+        .await
+        .unwrap();
+    assert_eq!((frame.width, frame.height), (32, 32));
     server.stop().await.unwrap();
 }

@@ -14,6 +14,18 @@ import { PRESETS, presetToTf, clipTf } from './presets.js';
 const $ = (/** @type {string} */ id) => /** @type {any} */ (document.getElementById(id));
 const params = new URLSearchParams(location.search);
 
+// Access token: taken once from ?token= and then removed from the address bar and history;
+// kept for this tab only. It travels as a WebSocket subprotocol and a bearer header, never in
+// a URL the server logs.
+const TOKEN_KEY = 'voxlight.token';
+if (params.get('token')) {
+  sessionStorage.setItem(TOKEN_KEY, params.get('token') || '');
+  params.delete('token');
+  const query = params.toString();
+  history.replaceState(null, '', location.pathname + (query ? `?${query}` : '') + location.hash);
+}
+const accessToken = () => sessionStorage.getItem(TOKEN_KEY) || '';
+
 /** Longest edge the server accepts (protocol MAX_VIEWPORT_EDGE). */
 const MAX_VIEWPORT_EDGE = 4096;
 /** Streamed images are capped to about this many pixels (1024²). */
@@ -79,10 +91,8 @@ const conn = new Connection(params.get('ws') || wsUrlFor(location), () => {
   if (local.technique) hello.technique = local.technique;
   const session = params.get('session');
   if (session) hello.session = session;
-  const token = params.get('token');
-  if (token) hello.token = token;
   return hello;
-});
+}, () => (accessToken() ? ['voxlight', `voxlight.token.${accessToken()}`] : ['voxlight']));
 vx.connection = conn;
 
 /** @param {string} type @param {object} body */
@@ -707,7 +717,19 @@ $('technique').addEventListener('change', () => {
 
 async function loadDatasetList() {
   try {
-    const res = await fetch('./api/datasets', { headers: { accept: 'application/json' } });
+    /** @type {Record<string, string>} */
+    const headers = { accept: 'application/json' };
+    if (accessToken()) headers.authorization = `Bearer ${accessToken()}`;
+    const res = await fetch('./api/datasets', { headers });
+    if (res.status === 401) {
+      // The server wants a token: ask once, then reconnect with it.
+      const token = window.prompt('This voxlight server needs an access token:');
+      if (token) {
+        sessionStorage.setItem(TOKEN_KEY, token.trim());
+        conn.connect();
+        return loadDatasetList();
+      }
+    }
     if (!res.ok) throw new Error(`HTTP ${res.status}`);
     const body = await res.json();
     const list = Array.isArray(body.datasets) ? body.datasets : [];

@@ -59,11 +59,13 @@ export class Connection extends EventTarget {
   /**
    * @param {string} url WebSocket URL
    * @param {() => object} makeHello builds the hello message for each (re)connection
+   * @param {() => string[]} [makeProtocols] WebSocket subprotocols (the access token travels as one)
    */
-  constructor(url, makeHello) {
+  constructor(url, makeHello, makeProtocols) {
     super();
     this.url = url;
     this.makeHello = makeHello;
+    this.makeProtocols = makeProtocols || (() => ['voxlight']);
     /** @type {WebSocket | null} */
     this.ws = null;
     this.attempt = 0;
@@ -83,7 +85,7 @@ export class Connection extends EventTarget {
     this._emit('connecting', { attempt: this.attempt });
     let ws;
     try {
-      ws = new WebSocket(this.url);
+      ws = new WebSocket(this.url, this.makeProtocols());
     } catch (err) {
       this._scheduleReconnect(0, String(err));
       return;

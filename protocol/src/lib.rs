@@ -13,6 +13,10 @@ pub const PROTOCOL_VERSION: u32 = 1;
 /// Largest text message the server accepts, in bytes.
 pub const MAX_MESSAGE_BYTES: usize = 64 * 1024;
 
+/// Messages per second a connection may send on average (bursts up to twice that); the
+/// rest are dropped with a `rate_limited` error.
+pub const MAX_MESSAGES_PER_SECOND: u32 = 120;
+
 /// Largest viewport edge in pixels.
 pub const MAX_VIEWPORT_EDGE: u32 = 4096;
 
@@ -251,6 +255,8 @@ pub enum ErrorCode {
     TooLarge,
     /// A message other than `hello` came first, or `hello` came twice.
     NotReady,
+    /// More messages per second than the server accepts; the message was dropped.
+    RateLimited,
     /// The client speaks another protocol version.
     ProtocolVersion,
     UnknownDataset,

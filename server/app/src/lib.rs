@@ -1,6 +1,7 @@
 //! The voxlight server: axum routes, sessions, streaming and frame encoding. GPU work runs on
 //! the render thread (`render_service`); the async side never blocks on the GPU.
 
+pub mod auth;
 pub mod bench;
 pub mod datasets;
 pub mod encode;
@@ -33,6 +34,7 @@ pub struct AppState {
     /// Largest viewport (width × height) one session may render on this GPU.
     pub max_viewport_pixels: u64,
     pub default_dataset: String,
+    pub access: auth::Access,
     pub shutdown: CancellationToken,
     pub tracker: TaskTracker,
 }
@@ -46,6 +48,8 @@ pub struct ServerConfig {
     /// Load every dataset once in the background at start-up so `/api/datasets` can show
     /// dims, spacing, value range and histogram before anyone opens them.
     pub preload: bool,
+    /// Tokens and allowed origins, checked before WebSocket upgrades and `/api/` requests.
+    pub access: auth::Access,
 }
 
 /// A started server core: the state for `app`, plus the render thread to join at the end.
@@ -91,6 +95,7 @@ impl Server {
             software_renderer,
             max_viewport_pixels,
             default_dataset,
+            access: config.access.clone(),
             shutdown,
             tracker: TaskTracker::new(),
         });

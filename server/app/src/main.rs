@@ -35,6 +35,16 @@ enum Command {
         /// dims, range and histogram only for datasets opened so far).
         #[arg(long)]
         no_preload: bool,
+        /// A token clients must present (`Authorization: Bearer` or the WebSocket subprotocol
+        /// `voxlight.token.<token>`); repeat for several. None: no token needed.
+        #[arg(long = "token")]
+        tokens: Vec<String>,
+        /// A file with one token per line (blank lines and `#` comments ignored).
+        #[arg(long)]
+        tokens_file: Option<PathBuf>,
+        /// An origin besides the server's own whose pages may open sessions (repeatable).
+        #[arg(long = "allow-origin")]
+        allowed_origins: Vec<String>,
     },
     /// Render a scene file to a PNG (and optionally a PFM of linear radiance).
     Render {
@@ -88,14 +98,33 @@ fn run() -> anyhow::Result<()> {
             data,
             default_dataset,
             no_preload,
-        } => serve(
-            listen,
-            ServerConfig {
-                data_dir: data,
-                default_dataset,
-                preload: !no_preload,
-            },
-        ),
+            mut tokens,
+            tokens_file,
+            allowed_origins,
+        } => {
+            if let Some(file) = tokens_file {
+                let text = std::fs::read_to_string(&file)
+                    .with_context(|| format!("reading tokens file {}", file.display()))?;
+                tokens.extend(
+                    text.lines()
+                        .map(str::trim)
+                        .filter(|l| !l.is_empty() && !l.starts_with('#'))
+                        .map(str::to_owned),
+                );
+            }
+            serve(
+                listen,
+                ServerConfig {
+                    data_dir: data,
+                    default_dataset,
+                    preload: !no_preload,
+                    access: voxlight_server::auth::Access {
+                        tokens,
+                        allowed_origins,
+                    },
+                },
+            )
+        }
         Command::Render { scene, out, pfm } => offline::render(&scene, &out, pfm.as_deref()),
         Command::Bench {
             name,

@@ -5,7 +5,7 @@ use std::sync::Arc;
 use axum::Router;
 use axum::extract::ws::WebSocketUpgrade;
 use axum::extract::{Path, State};
-use axum::http::{StatusCode, header};
+use axum::http::{HeaderMap, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use serde_json::json;
@@ -67,15 +67,29 @@ async fn healthz(State(state): State<Arc<AppState>>) -> impl IntoResponse {
     }))
 }
 
-async fn datasets(State(state): State<Arc<AppState>>) -> impl IntoResponse {
+async fn datasets(State(state): State<Arc<AppState>>, headers: HeaderMap) -> Response {
+    if let Err(refusal) = state.access.check(&headers) {
+        return refusal.into_response();
+    }
     axum::Json(json!({
         "datasets": state.catalog.list(),
         "default": state.default_dataset,
     }))
+    .into_response()
 }
 
-async fn websocket(ws: WebSocketUpgrade, State(state): State<Arc<AppState>>) -> Response {
-    ws.max_message_size(TRANSPORT_MAX_MESSAGE)
+async fn websocket(
+    ws: WebSocketUpgrade,
+    headers: HeaderMap,
+    State(state): State<Arc<AppState>>,
+) -> Response {
+    // Refused before the upgrade: a plain HTTP 401/403 the client can read.
+    if let Err(refusal) = state.access.check(&headers) {
+        tracing::info!(?refusal, "WebSocket upgrade refused");
+        return refusal.into_response();
+    }
+    ws.protocols([crate::auth::SUBPROTOCOL])
+        .max_message_size(TRANSPORT_MAX_MESSAGE)
         .max_frame_size(TRANSPORT_MAX_MESSAGE)
         .on_upgrade(move |socket| {
             let tracker = state.tracker.clone();

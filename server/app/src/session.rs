@@ -14,8 +14,8 @@ use voxlight_engine::camera::CameraBasis;
 use voxlight_engine::scene::{validate_lights, validate_params, validate_viewport};
 use voxlight_engine::{Change, Scene};
 use voxlight_protocol::{
-    ClientMessage, ErrorCode, FrameFormat, FrameMeta, MAX_MESSAGE_BYTES, PROTOCOL_VERSION,
-    RenderParams, ServerMessage, SessionState, Stats, Viewport, join_frame,
+    ClientMessage, ErrorCode, FrameFormat, FrameMeta, MAX_MESSAGE_BYTES, MAX_MESSAGES_PER_SECOND,
+    PROTOCOL_VERSION, RenderParams, ServerMessage, SessionState, Stats, Viewport, join_frame,
 };
 
 use crate::AppState;
@@ -330,6 +330,44 @@ async fn open_session(state: &Arc<AppState>, hello: ClientMessage) -> Result<Ope
     })
 }
 
+/// Token bucket: `MAX_MESSAGES_PER_SECOND` on average, bursts of twice that.
+struct RateLimit {
+    tokens: f64,
+    last: Instant,
+    /// When the last `rate_limited` error went out (at most one a second).
+    last_reported: Option<Instant>,
+}
+
+impl RateLimit {
+    fn new() -> Self {
+        Self {
+            tokens: 2.0 * MAX_MESSAGES_PER_SECOND as f64,
+            last: Instant::now(),
+            last_reported: None,
+        }
+    }
+
+    /// Ok: accept the message. Err(report): drop it; `report` says whether to send an error.
+    fn take(&mut self) -> Result<(), bool> {
+        let now = Instant::now();
+        let rate = MAX_MESSAGES_PER_SECOND as f64;
+        self.tokens =
+            (self.tokens + now.duration_since(self.last).as_secs_f64() * rate).min(2.0 * rate);
+        self.last = now;
+        if self.tokens >= 1.0 {
+            self.tokens -= 1.0;
+            return Ok(());
+        }
+        let report = self
+            .last_reported
+            .is_none_or(|t| now.duration_since(t) >= Duration::from_secs(1));
+        if report {
+            self.last_reported = Some(now);
+        }
+        Err(report)
+    }
+}
+
 async fn read_loop(
     state: &Arc<AppState>,
     mut core: SessionCore,
@@ -337,6 +375,7 @@ async fn read_loop(
     outbox: mpsc::Sender<ServerMessage>,
     jpeg_quality: Arc<AtomicU8>,
 ) {
+    let mut limit = RateLimit::new();
     loop {
         let message = tokio::select! {
             message = stream.next() => message,
@@ -350,6 +389,20 @@ async fn read_loop(
                 return;
             }
         };
+        if let Err(report) = limit.take() {
+            if report {
+                let reply = Reply::new(
+                    ErrorCode::RateLimited,
+                    format!(
+                        "more than {MAX_MESSAGES_PER_SECOND} messages a second; messages are being dropped"
+                    ),
+                );
+                if outbox.send(error_message(reply)).await.is_err() {
+                    return;
+                }
+            }
+            continue;
+        }
         let result = match parse(message) {
             Ok(Some(message)) => {
                 handle_message(state, &mut core, message, &outbox, &jpeg_quality).await
