@@ -473,3 +473,72 @@ async fn a_flood_is_rate_limited_and_the_session_survives() {
     assert_eq!((frame.width, frame.height), (32, 32));
     server.stop().await.unwrap();
 }
+
+/// The value of the first metric line starting with `prefix`.
+fn metric(text: &str, prefix: &str) -> f64 {
+    text.lines()
+        .find(|l| l.starts_with(prefix))
+        .and_then(|l| l.rsplit(' ').next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no metric {prefix} in:\n{text}"))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn metrics_count_sessions_frames_errors_and_latency() {
+    let server = TestServer::start(None).await.unwrap();
+    let app = voxlight_server::app(server.state.clone());
+    let scrape = |app: axum::Router| async move {
+        let response = app
+            .oneshot(Request::get("/metrics").body(Body::empty()).unwrap())
+            .await
+            .unwrap();
+        assert_eq!(response.status(), StatusCode::OK);
+        String::from_utf8(
+            response
+                .into_body()
+                .collect()
+                .await
+                .unwrap()
+                .to_bytes()
+                .to_vec(),
+        )
+        .unwrap()
+    };
+    let mut client = Client::connect(&server.ws_url()).await.unwrap();
+    client.hello(Some("phantom:sphere"), 32, 32).await.unwrap();
+    client.frame_where(|_| true).await.unwrap();
+    client.send_text("garbage".into()).await.unwrap();
+    assert_error(&client.recv_text().await.unwrap(), ErrorCode::BadMessage);
+    client
+        .send_json(json!({"type": "camera", "eye": [0.5, -2.3, 0.4], "target": [0, 0, 0], "up": [0, 0, 1], "fov_deg": 30}))
+        .await
+        .unwrap();
+    client
+        .frame_where(|f| f.meta.scene_version >= 1)
+        .await
+        .unwrap();
+
+    let text = scrape(app.clone()).await;
+    assert_eq!(metric(&text, "voxlight_sessions_active "), 1.0);
+    assert!(metric(&text, "voxlight_frames_sent_total{format=\"jpeg\"}") >= 2.0);
+    assert!(metric(&text, "voxlight_bytes_sent_total ") > 0.0);
+    assert_eq!(
+        metric(&text, "voxlight_errors_total{code=\"bad_message\"}"),
+        1.0
+    );
+    assert!(metric(&text, "voxlight_gpu_seconds_total{technique=\"raymarch\"}") > 0.0);
+    assert!(metric(&text, "voxlight_input_to_frame_seconds_count ") >= 1.0);
+    assert!(metric(&text, "voxlight_encode_seconds_count ") >= 2.0);
+    assert!(!text.contains("phantom"), "metrics must not name datasets");
+
+    client.close().await;
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(20);
+    while metric(&scrape(app.clone()).await, "voxlight_sessions_active ") != 0.0 {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the closed session is still counted"
+        );
+        tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+    }
+    server.stop().await.unwrap();
+}

@@ -5,6 +5,7 @@ pub mod auth;
 pub mod bench;
 pub mod datasets;
 pub mod encode;
+pub mod metrics;
 pub mod offline;
 pub mod render_service;
 pub mod routes;
@@ -35,6 +36,7 @@ pub struct AppState {
     pub max_viewport_pixels: u64,
     pub default_dataset: String,
     pub access: auth::Access,
+    pub metrics: Arc<metrics::Metrics>,
     pub shutdown: CancellationToken,
     pub tracker: TaskTracker,
 }
@@ -80,7 +82,8 @@ impl Server {
         if software_renderer {
             tracing::warn!(%adapter, "rendering on a software adapter (CPU): expect low frame rates");
         }
-        let (render, render_thread) = render_service::spawn(Arc::new(engine))?;
+        let metrics = Arc::new(metrics::Metrics::default());
+        let (render, render_thread) = render_service::spawn(Arc::new(engine), metrics.clone())?;
         if config.preload {
             let catalog = catalog.clone();
             std::thread::Builder::new()
@@ -96,6 +99,7 @@ impl Server {
             max_viewport_pixels,
             default_dataset,
             access: config.access.clone(),
+            metrics,
             shutdown,
             tracker: TaskTracker::new(),
         });

@@ -118,16 +118,20 @@ struct Session {
 }
 
 /// Starts the render thread. It stops when every `RenderHandle` is dropped.
-pub fn spawn(engine: Arc<Engine>) -> std::io::Result<(RenderHandle, std::thread::JoinHandle<()>)> {
+pub fn spawn(
+    engine: Arc<Engine>,
+    metrics: Arc<crate::metrics::Metrics>,
+) -> std::io::Result<(RenderHandle, std::thread::JoinHandle<()>)> {
     let (commands, receiver) = mpsc::channel(COMMAND_QUEUE);
     let thread = std::thread::Builder::new()
         .name("voxlight-render".into())
-        .spawn(move || RenderThread::new(engine).run(receiver))?;
+        .spawn(move || RenderThread::new(engine, metrics).run(receiver))?;
     Ok((RenderHandle { commands }, thread))
 }
 
 struct RenderThread {
     engine: Arc<Engine>,
+    metrics: Arc<crate::metrics::Metrics>,
     sessions: HashMap<SessionId, Session>,
     volumes: HashMap<String, Weak<GpuVolume>>,
     /// Round-robin position.
@@ -135,9 +139,10 @@ struct RenderThread {
 }
 
 impl RenderThread {
-    fn new(engine: Arc<Engine>) -> Self {
+    fn new(engine: Arc<Engine>, metrics: Arc<crate::metrics::Metrics>) -> Self {
         Self {
             engine,
+            metrics,
             sessions: HashMap::new(),
             volumes: HashMap::new(),
             last_served: 0,
@@ -319,6 +324,8 @@ impl RenderThread {
             .and_then(|report| Ok((report, session.renderer.frame(&engine, &session.scene)?)));
         match result {
             Ok((report, frame)) => {
+                self.metrics
+                    .gpu_time(session.renderer.technique_name(), report.gpu_time);
                 session.dirty = !frame.converged;
                 let rendered = RenderedFrame {
                     technique: session.renderer.technique_name(),

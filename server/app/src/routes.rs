@@ -23,6 +23,7 @@ pub fn app(state: Arc<AppState>) -> Router {
         .route("/", get(|| async { static_file("index.html") }))
         .route("/healthz", get(healthz))
         .route("/api/datasets", get(datasets))
+        .route("/metrics", get(metrics))
         .route("/ws", get(websocket))
         .route(
             "/{file}",
@@ -67,8 +68,30 @@ async fn healthz(State(state): State<Arc<AppState>>) -> impl IntoResponse {
     }))
 }
 
+/// Prometheus text exposition; needs a token when the server has tokens.
+async fn metrics(State(state): State<Arc<AppState>>, headers: HeaderMap) -> Response {
+    if let Err(refusal) = check_access(&state, &headers) {
+        return refusal.into_response();
+    }
+    (
+        [(header::CONTENT_TYPE, "text/plain; version=0.0.4")],
+        state.metrics.render(),
+    )
+        .into_response()
+}
+
+fn check_access(state: &AppState, headers: &HeaderMap) -> Result<(), crate::auth::Refusal> {
+    state.access.check(headers).inspect_err(|refusal| {
+        tracing::info!(?refusal, "request refused");
+        state
+            .metrics
+            .upgrades_refused
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    })
+}
+
 async fn datasets(State(state): State<Arc<AppState>>, headers: HeaderMap) -> Response {
-    if let Err(refusal) = state.access.check(&headers) {
+    if let Err(refusal) = check_access(&state, &headers) {
         return refusal.into_response();
     }
     axum::Json(json!({
@@ -84,8 +107,7 @@ async fn websocket(
     State(state): State<Arc<AppState>>,
 ) -> Response {
     // Refused before the upgrade: a plain HTTP 401/403 the client can read.
-    if let Err(refusal) = state.access.check(&headers) {
-        tracing::info!(?refusal, "WebSocket upgrade refused");
+    if let Err(refusal) = check_access(&state, &headers) {
         return refusal.into_response();
     }
     ws.protocols([crate::auth::SUBPROTOCOL])

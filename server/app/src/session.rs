@@ -19,6 +19,7 @@ use voxlight_protocol::{
 };
 
 use crate::AppState;
+use crate::metrics::Metrics;
 use crate::render_service::{Command, RenderEvent, RenderedFrame, SessionId};
 
 /// How long a client may take to say `hello`.
@@ -101,9 +102,23 @@ struct SessionCore {
     technique: String,
     scene: Scene,
     version: u64,
+    edit_clock: EditClock,
 }
 
+/// The oldest edit no frame has shown yet (scene version, arrival), for the input-to-frame
+/// latency metric.
+type EditClock = Arc<std::sync::Mutex<Option<(u64, Instant)>>>;
+
 impl SessionCore {
+    /// Counts an edit: the next scene version, remembered with its arrival time unless an
+    /// older edit is still waiting for its frame.
+    fn bump_version(&mut self, arrived: Instant) {
+        self.version += 1;
+        if let Ok(mut pending) = self.edit_clock.lock() {
+            pending.get_or_insert((self.version, arrived));
+        }
+    }
+
     fn state(&self, jpeg_quality: u8) -> SessionState {
         SessionState {
             dataset: self.dataset.clone(),
@@ -123,13 +138,14 @@ impl SessionCore {
 pub async fn handle_socket(socket: WebSocket, state: Arc<AppState>) {
     let (mut sink, mut stream) = socket.split();
     let hello = tokio::select! {
-        hello = wait_for_hello(&mut sink, &mut stream) => hello,
+        hello = wait_for_hello(&mut sink, &mut stream, &state.metrics) => hello,
         _ = state.shutdown.cancelled() => None,
     };
     let Some(hello) = hello else { return };
     let session = match open_session(&state, hello).await {
         Ok(session) => session,
         Err(reply) => {
+            state.metrics.error_sent(reply.code);
             let _ = sink.send(text(&error_message(reply))).await;
             let _ = sink.close().await;
             return;
@@ -152,16 +168,30 @@ pub async fn handle_socket(socket: WebSocket, state: Arc<AppState>) {
         frames,
         events,
         jpeg_quality.clone(),
-        state.shutdown.clone(),
+        state.clone(),
+        core.edit_clock.clone(),
     ));
+    state
+        .metrics
+        .sessions_active
+        .fetch_add(1, Ordering::Relaxed);
+    state.metrics.sessions_total.fetch_add(1, Ordering::Relaxed);
     read_loop(&state, core, stream, outbox, jpeg_quality).await;
     let _ = state.render.send(Command::Close { id }).await;
     let _ = writer.await;
+    state
+        .metrics
+        .sessions_active
+        .fetch_sub(1, Ordering::Relaxed);
     tracing::info!(session = id, "session closed");
 }
 
 /// Answers everything before a valid `hello` with `not_ready`.
-async fn wait_for_hello(sink: &mut Sink, stream: &mut Stream) -> Option<ClientMessage> {
+async fn wait_for_hello(
+    sink: &mut Sink,
+    stream: &mut Stream,
+    metrics: &Metrics,
+) -> Option<ClientMessage> {
     let deadline = tokio::time::Instant::now() + HELLO_TIMEOUT;
     loop {
         let message = match tokio::time::timeout_at(deadline, stream.next()).await {
@@ -169,6 +199,7 @@ async fn wait_for_hello(sink: &mut Sink, stream: &mut Stream) -> Option<ClientMe
             Ok(_) => return None,
             Err(_) => {
                 let reply = Reply::new(ErrorCode::NotReady, "no hello within 30 s; closing");
+                metrics.error_sent(reply.code);
                 let _ = sink.send(text(&error_message(reply))).await;
                 return None;
             }
@@ -182,6 +213,7 @@ async fn wait_for_hello(sink: &mut Sink, stream: &mut Stream) -> Option<ClientMe
             Ok(None) => continue,
             Err(reply) => reply,
         };
+        metrics.error_sent(reply.code);
         if sink.send(text(&error_message(reply))).await.is_err() {
             return None;
         }
@@ -288,6 +320,7 @@ async fn open_session(state: &Arc<AppState>, hello: ClientMessage) -> Result<Ope
         technique: technique.clone(),
         scene: scene.clone(),
         version: 0,
+        edit_clock: Default::default(),
     };
     let (frame_slot, frames) = watch::channel(None);
     let (event_slot, events) = mpsc::channel(16);
@@ -426,6 +459,7 @@ async fn handle_message(
     outbox: &mpsc::Sender<ServerMessage>,
     jpeg_quality: &AtomicU8,
 ) -> Result<(), Reply> {
+    let arrived = Instant::now();
     let mut scene = core.scene.clone();
     let change = match message {
         ClientMessage::Hello { .. } => {
@@ -497,7 +531,7 @@ async fn handle_message(
         }
         ClientMessage::Technique { name } => {
             check_technique(state, &name)?;
-            core.version += 1;
+            core.bump_version(arrived);
             rebuild(state, core, None, name.clone(), scene).await?;
             core.technique = name;
             return Ok(());
@@ -507,7 +541,7 @@ async fn handle_message(
             // A new dataset is a new scene: its own default TF and lights.
             scene.tf = crate::datasets::default_tf(&volume);
             scene.lights = crate::datasets::default_lights_for(&volume);
-            core.version += 1;
+            core.bump_version(arrived);
             rebuild(state, core, Some(volume), core.technique.clone(), scene).await?;
             core.dataset = name.clone();
             let dataset = state
@@ -522,7 +556,7 @@ async fn handle_message(
         }
     };
     core.scene = scene.clone();
-    core.version += 1;
+    core.bump_version(arrived);
     state
         .render
         .send(Command::Edit {
@@ -569,8 +603,10 @@ async fn write_loop(
     mut frames: watch::Receiver<Option<Arc<RenderedFrame>>>,
     mut events: mpsc::Receiver<RenderEvent>,
     jpeg_quality: Arc<AtomicU8>,
-    shutdown: tokio_util::sync::CancellationToken,
+    state: Arc<AppState>,
+    edit_clock: EditClock,
 ) {
+    let (shutdown, metrics) = (&state.shutdown, &state.metrics);
     let mut seq = 0u64;
     let mut last_stats = Instant::now() - STATS_INTERVAL;
     let mut sent_times: std::collections::VecDeque<Instant> = Default::default();
@@ -584,13 +620,21 @@ async fn write_loop(
                 return;
             }
             message = outbox.recv() => match message {
-                Some(message) => text(&message),
+                Some(message) => {
+                    if let ServerMessage::Error { code, .. } = &message {
+                        metrics.error_sent(*code);
+                    }
+                    text(&message)
+                }
                 None => {
                     let _ = sink.close().await;
                     return;
                 }
             },
-            Some(event) = events.recv() => text(&ServerMessage::Error { code: event.code, message: event.message }),
+            Some(event) = events.recv() => {
+                metrics.error_sent(event.code);
+                text(&ServerMessage::Error { code: event.code, message: event.message })
+            }
             changed = frames.changed() => {
                 if changed.is_err() {
                     return;
@@ -599,7 +643,7 @@ async fn write_loop(
                 let quality = jpeg_quality.load(Ordering::Relaxed);
                 seq += 1;
                 let encoded = tokio::task::spawn_blocking(move || encode_frame(&rendered, seq, quality)).await;
-                let (bytes, stats) = match encoded {
+                let (bytes, stats, meta) = match encoded {
                     Ok(Ok(done)) => done,
                     Ok(Err(e)) => {
                         tracing::error!(error = %e, "frame encoding failed");
@@ -610,10 +654,19 @@ async fn write_loop(
                         continue;
                     }
                 };
+                let size = bytes.len();
                 if sink.send(Message::Binary(bytes.into())).await.is_err() {
                     return;
                 }
                 let now = Instant::now();
+                metrics.frame_sent(meta.format, size, Duration::from_secs_f32(meta.encode_ms / 1000.0));
+                if let Ok(mut pending) = edit_clock.lock()
+                    && let Some((version, arrived)) = *pending
+                    && meta.scene_version >= version
+                {
+                    metrics.input_to_frame_seconds.observe(now.duration_since(arrived));
+                    *pending = None;
+                }
                 sent_times.push_back(now);
                 while sent_times.front().is_some_and(|t| now.duration_since(*t) > Duration::from_secs(1)) {
                     sent_times.pop_front();
@@ -636,7 +689,7 @@ fn encode_frame(
     rendered: &RenderedFrame,
     seq: u64,
     quality: u8,
-) -> Result<(Vec<u8>, Stats), crate::encode::EncodeError> {
+) -> Result<(Vec<u8>, Stats, FrameMeta), crate::encode::EncodeError> {
     let started = Instant::now();
     let frame = &rendered.frame;
     let (image, format) = if frame.converged {
@@ -674,5 +727,5 @@ fn encode_frame(
         memory_bytes: rendered.stats.memory_bytes,
         fps: 0.0,
     };
-    Ok((join_frame(&meta, &image), stats))
+    Ok((join_frame(&meta, &image), stats, meta))
 }
