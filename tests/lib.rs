@@ -47,7 +47,7 @@ impl TestServer {
             data_dir,
             default_dataset: Some("phantom:sphere".into()),
             preload: false,
-            access: Default::default(),
+            ..Default::default()
         })
         .await
     }
@@ -72,6 +72,26 @@ impl TestServer {
         format!("ws://{}/ws", self.addr)
     }
 
+    /// `GET /metrics`, as text.
+    pub async fn metrics(&self) -> String {
+        use http_body_util::BodyExt;
+        use tower::ServiceExt;
+        let request = axum::http::Request::get("/metrics")
+            .body(axum::body::Body::empty())
+            .expect("request");
+        let response = voxlight_server::app(self.state.clone())
+            .oneshot(request)
+            .await
+            .expect("metrics route");
+        let body = response.into_body().collect().await.expect("metrics body");
+        String::from_utf8_lossy(&body.to_bytes()).into_owned()
+    }
+
+    /// One metric's value (the first line starting with `prefix`).
+    pub async fn metric(&self, prefix: &str) -> f64 {
+        metric(&self.metrics().await, prefix)
+    }
+
     /// Cancels and waits for the server to drain.
     pub async fn stop(self) -> anyhow::Result<()> {
         self.shutdown.cancel();
@@ -80,6 +100,15 @@ impl TestServer {
             .context("server did not stop within 30 s")???;
         Ok(())
     }
+}
+
+/// The value of the first metric line starting with `prefix`.
+pub fn metric(text: &str, prefix: &str) -> f64 {
+    text.lines()
+        .find(|l| l.starts_with(prefix))
+        .and_then(|l| l.rsplit(' ').next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no metric {prefix} in:\n{text}"))
 }
 
 /// A decoded frame.
@@ -243,13 +272,38 @@ impl Client {
         }
     }
 
-    /// Skips frames and `stats` until another text message arrives.
+    /// Skips frames, `stats` and session chatter (`viewers`, `edited`, `state`) until another
+    /// text message arrives.
     pub async fn recv_text(&mut self) -> anyhow::Result<ServerMessage> {
         loop {
             match self.recv().await? {
                 Incoming::Frame(_) => {}
-                Incoming::Text(message) if matches!(*message, ServerMessage::Stats(_)) => {}
+                Incoming::Text(message)
+                    if matches!(
+                        *message,
+                        ServerMessage::Stats(_)
+                            | ServerMessage::Viewers { .. }
+                            | ServerMessage::Edited { .. }
+                            | ServerMessage::State { .. }
+                    ) => {}
                 Incoming::Text(message) => return Ok(*message),
+            }
+        }
+    }
+
+    /// Skips frames until a text message satisfies `accept`; errors fail.
+    pub async fn text_where(
+        &mut self,
+        accept: impl Fn(&ServerMessage) -> bool,
+    ) -> anyhow::Result<ServerMessage> {
+        loop {
+            if let Incoming::Text(message) = self.recv().await? {
+                if accept(&message) {
+                    return Ok(*message);
+                }
+                if let ServerMessage::Error { code, message } = *message {
+                    bail!("unexpected error {code:?}: {message}")
+                }
             }
         }
     }
@@ -289,6 +343,18 @@ impl Client {
             bail!("expected welcome, got {reply:?}");
         }
         Ok(reply)
+    }
+
+    /// Sends a `hello` built by the test and returns the server's first reply (not counting
+    /// session chatter): `welcome`, or an `error`.
+    pub async fn hello_with(&mut self, hello: serde_json::Value) -> anyhow::Result<ServerMessage> {
+        self.send_json(hello).await?;
+        self.recv_text().await
+    }
+
+    /// Drops the TCP connection without a close handshake (a network failure).
+    pub fn drop_connection(self) {
+        drop(self.ws);
     }
 
     pub async fn close(mut self) {

@@ -6,7 +6,7 @@ use http_body_util::BodyExt;
 use serde_json::json;
 use tower::ServiceExt;
 use voxlight_protocol::{ErrorCode, FrameFormat, ServerMessage};
-use voxlight_tests::{Client, Incoming, TestServer, shared_data};
+use voxlight_tests::{Client, Incoming, TestServer, metric, shared_data};
 
 fn assert_error(message: &ServerMessage, expected: ErrorCode) {
     match message {
@@ -191,6 +191,7 @@ async fn converged_picture_arrives_as_lossless_png_with_stats() {
                     assert_eq!(stats.technique, "raymarch");
                     assert!(stats.memory_bytes > 0);
                 }
+                ServerMessage::Viewers { .. } | ServerMessage::Edited { .. } => {}
                 other => panic!("unexpected {other:?}"),
             },
         }
@@ -278,7 +279,7 @@ async fn http_routes_list_datasets_and_serve_the_client() {
         data_dir: Some(shared_data()),
         default_dataset: None,
         preload: true,
-        access: Default::default(),
+        ..Default::default()
     })
     .await
     .unwrap();
@@ -370,6 +371,7 @@ async fn tokens_and_origins_are_checked_before_the_upgrade() {
             tokens: vec!["s3cret".into()],
             allowed_origins: vec!["https://viewer.example".into()],
         },
+        ..Default::default()
     })
     .await
     .unwrap();
@@ -474,15 +476,6 @@ async fn a_flood_is_rate_limited_and_the_session_survives() {
     server.stop().await.unwrap();
 }
 
-/// The value of the first metric line starting with `prefix`.
-fn metric(text: &str, prefix: &str) -> f64 {
-    text.lines()
-        .find(|l| l.starts_with(prefix))
-        .and_then(|l| l.rsplit(' ').next())
-        .and_then(|v| v.parse().ok())
-        .unwrap_or_else(|| panic!("no metric {prefix} in:\n{text}"))
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn metrics_count_sessions_frames_errors_and_latency() {
     let server = TestServer::start(None).await.unwrap();
@@ -533,12 +526,17 @@ async fn metrics_count_sessions_frames_errors_and_latency() {
 
     client.close().await;
     let deadline = std::time::Instant::now() + std::time::Duration::from_secs(20);
-    while metric(&scrape(app.clone()).await, "voxlight_sessions_active ") != 0.0 {
+    while metric(&scrape(app.clone()).await, "voxlight_viewers_active ") != 0.0 {
         assert!(
             std::time::Instant::now() < deadline,
-            "the closed session is still counted"
+            "the closed connection is still counted as a viewer"
         );
         tokio::time::sleep(std::time::Duration::from_millis(100)).await;
     }
+    // The session itself waits out its reconnect grace period.
+    assert_eq!(
+        metric(&scrape(app.clone()).await, "voxlight_sessions_active "),
+        1.0
+    );
     server.stop().await.unwrap();
 }

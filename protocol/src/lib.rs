@@ -26,6 +26,15 @@ pub const MAX_TF_POINTS: usize = 256;
 /// Most lights a scene may have.
 pub const MAX_LIGHTS: usize = 16;
 
+/// Most viewers one shared session may have.
+pub const MAX_VIEWERS_PER_SESSION: usize = 32;
+
+/// Longest viewer display name, in characters.
+pub const MAX_NAME_CHARS: usize = 64;
+
+/// Largest `max_in_flight` a client may ask for.
+pub const MAX_FRAMES_IN_FLIGHT: u32 = 8;
+
 /// Image size in pixels.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Viewport {
@@ -144,7 +153,9 @@ pub enum ClientMessage {
     /// First message of a connection.
     Hello {
         protocol: u32,
-        /// Join an existing session instead of starting a new one.
+        /// Join an existing session (the id from its `welcome`) instead of starting a new one.
+        /// When joining, `viewport`, `dataset` and `technique` are ignored: the session's own
+        /// state wins and arrives in `welcome`.
         #[serde(default)]
         session: Option<String>,
         #[serde(default)]
@@ -156,6 +167,18 @@ pub enum ClientMessage {
         dataset: Option<String>,
         #[serde(default)]
         technique: Option<String>,
+        /// Display name shown to the other viewers with this viewer's edits.
+        #[serde(default)]
+        name: Option<String>,
+        /// Flow control: at most this many frames (1..=`MAX_FRAMES_IN_FLIGHT`) are sent before
+        /// the client acknowledges them with `ack`. Absent: no acknowledgements; TCP
+        /// backpressure alone paces the frames.
+        #[serde(default)]
+        max_in_flight: Option<u32>,
+    },
+    /// Acknowledges every frame up to and including `seq` (with `max_in_flight`).
+    Ack {
+        seq: u64,
     },
     /// Open another dataset (by name, as listed by `/api/datasets`).
     Dataset {
@@ -229,6 +252,14 @@ pub struct TechniqueInfo {
     pub description: String,
 }
 
+/// One person (connection) viewing a session.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ViewerInfo {
+    /// Unique within the session, stable for the connection.
+    pub id: u32,
+    pub name: String,
+}
+
 /// The full editable state of a session, as sent to a (late) joiner.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SessionState {
@@ -259,6 +290,10 @@ pub enum ErrorCode {
     RateLimited,
     /// The client speaks another protocol version.
     ProtocolVersion,
+    /// `hello` named a session that does not exist (any more).
+    UnknownSession,
+    /// The session already has `MAX_VIEWERS_PER_SESSION` viewers.
+    SessionFull,
     UnknownDataset,
     UnknownTechnique,
     /// The dataset exists but could not be read.
@@ -283,11 +318,40 @@ pub enum ServerMessage {
         dataset: DatasetInfo,
         techniques: Vec<TechniqueInfo>,
         state: SessionState,
+        /// This connection, as the other viewers see it.
+        viewer: ViewerInfo,
+        /// Everyone viewing the session, this viewer included.
+        viewers: Vec<ViewerInfo>,
+        /// `true` when `hello` joined an existing session.
+        joined: bool,
     },
-    /// The session switched datasets (after a `dataset` message).
+    /// A viewer changed the session (last writer wins). Sent to every viewer, the editor
+    /// included, in the order the server applied the edits; `edit` is the client message
+    /// as applied (`camera`, `tf`, `lights`, `technique`, `viewport`, `params`, or `quality`
+    /// with `iterations` only). Dataset switches arrive as `dataset_loaded`.
+    Edited {
+        by: ViewerInfo,
+        /// The scene version this edit produced; frames with `scene_version` ≥ it show it.
+        version: u64,
+        edit: Box<ClientMessage>,
+    },
+    /// The whole session state, sent when a viewer fell behind on `edited` messages (it
+    /// replaces everything the viewer missed).
+    State {
+        state: SessionState,
+        version: u64,
+    },
+    /// Someone joined or left; the full list.
+    Viewers {
+        viewers: Vec<ViewerInfo>,
+    },
+    /// The session switched datasets (after a `dataset` message from any viewer).
     DatasetLoaded {
         dataset: DatasetInfo,
         state: SessionState,
+        /// Who switched.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        by: Option<ViewerInfo>,
     },
     /// Progress of the current picture, sent with frames at a modest rate.
     Stats(Stats),
@@ -314,6 +378,15 @@ pub struct Stats {
     pub memory_bytes: u64,
     /// Frames sent per second to this viewer over the last second.
     pub fps: f32,
+    /// Viewers of the session.
+    #[serde(default)]
+    pub viewers: u32,
+    /// JPEG quality currently chosen for this viewer (adapted to its bandwidth).
+    #[serde(default)]
+    pub jpeg_quality: u8,
+    /// Frames this viewer skipped because a newer one was ready before it could take it.
+    #[serde(default)]
+    pub frames_skipped: u64,
 }
 
 /// Image encodings of frames.
@@ -327,7 +400,8 @@ pub enum FrameFormat {
 /// JSON header of a binary frame message.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FrameMeta {
-    /// Increases by one per frame sent on this connection.
+    /// The session's frame number: increases with every picture the session renders, and
+    /// is the same for every viewer. A viewer that was busy skips frames (gaps are normal).
     pub seq: u64,
     pub format: FrameFormat,
     pub width: u32,

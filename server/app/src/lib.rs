@@ -1,10 +1,13 @@
 //! The voxlight server: axum routes, sessions, streaming and frame encoding. GPU work runs on
 //! the render thread (`render_service`); the async side never blocks on the GPU.
 
+pub mod adapt;
 pub mod auth;
 pub mod bench;
 pub mod datasets;
 pub mod encode;
+pub mod hub;
+pub mod loadgen;
 pub mod metrics;
 pub mod offline;
 pub mod render_service;
@@ -37,6 +40,8 @@ pub struct AppState {
     pub default_dataset: String,
     pub access: auth::Access,
     pub metrics: Arc<metrics::Metrics>,
+    /// Shared sessions by id.
+    pub hub: hub::Hub,
     pub shutdown: CancellationToken,
     pub tracker: TaskTracker,
 }
@@ -52,7 +57,17 @@ pub struct ServerConfig {
     pub preload: bool,
     /// Tokens and allowed origins, checked before WebSocket upgrades and `/api/` requests.
     pub access: auth::Access,
+    /// How long a session is kept after its last viewer left (for reconnects);
+    /// `hub::DEFAULT_GRACE_PERIOD` when unset.
+    pub grace_period: Option<std::time::Duration>,
+    /// GPU bytes all sessions and volumes together may use; `DEFAULT_GPU_MEMORY_BUDGET`
+    /// when unset.
+    pub gpu_memory_budget: Option<u64>,
 }
+
+/// Default global GPU memory budget: 4 GiB, which fits most GPUs that run this (a larger
+/// GPU is told so with `--gpu-memory-mib`).
+pub const DEFAULT_GPU_MEMORY_BUDGET: u64 = 4 << 30;
 
 /// A started server core: the state for `app`, plus the render thread to join at the end.
 pub struct Server {
@@ -83,7 +98,11 @@ impl Server {
             tracing::warn!(%adapter, "rendering on a software adapter (CPU): expect low frame rates");
         }
         let metrics = Arc::new(metrics::Metrics::default());
-        let (render, render_thread) = render_service::spawn(Arc::new(engine), metrics.clone())?;
+        let budget = config
+            .gpu_memory_budget
+            .unwrap_or(DEFAULT_GPU_MEMORY_BUDGET);
+        let (render, render_thread) =
+            render_service::spawn(Arc::new(engine), metrics.clone(), budget)?;
         if config.preload {
             let catalog = catalog.clone();
             std::thread::Builder::new()
@@ -100,6 +119,7 @@ impl Server {
             default_dataset,
             access: config.access.clone(),
             metrics,
+            hub: hub::Hub::new(config.grace_period.unwrap_or(hub::DEFAULT_GRACE_PERIOD)),
             shutdown,
             tracker: TaskTracker::new(),
         });

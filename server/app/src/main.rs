@@ -1,12 +1,13 @@
-//! The `voxlight` binary: `serve`, `render` and `bench`.
+//! The `voxlight` binary: `serve`, `render`, `bench` and `loadgen`.
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::time::Duration;
 
 use anyhow::Context;
 use clap::{Parser, Subcommand};
 use tokio_util::sync::CancellationToken;
-use voxlight_server::{Server, ServerConfig, bench, offline};
+use voxlight_server::{Server, ServerConfig, bench, loadgen, offline};
 
 #[derive(Parser)]
 #[command(
@@ -45,6 +46,49 @@ enum Command {
         /// An origin besides the server's own whose pages may open sessions (repeatable).
         #[arg(long = "allow-origin")]
         allowed_origins: Vec<String>,
+        /// Seconds a session is kept after its last viewer left, so a reconnecting client
+        /// resumes it (and its converged picture).
+        #[arg(long, default_value_t = 120)]
+        grace_period_s: u64,
+        /// GPU memory (MiB) all sessions and volumes together may use; a session that would
+        /// exceed it is refused with `gpu_memory`.
+        #[arg(long, default_value_t = voxlight_server::DEFAULT_GPU_MEMORY_BUDGET >> 20)]
+        gpu_memory_mib: u64,
+    },
+    /// Scripted viewers against a running server: each session has an editor that orbits
+    /// the camera and edits the TF, and watchers that join it. Reports input-to-frame
+    /// latency, fps per viewer, bytes/s and errors.
+    Loadgen {
+        #[arg(long, default_value = "ws://127.0.0.1:8080/ws")]
+        url: String,
+        #[arg(long, default_value_t = 4)]
+        sessions: u32,
+        /// Viewers per session (the first one edits).
+        #[arg(long, default_value_t = 1)]
+        viewers: u32,
+        /// Seconds to run.
+        #[arg(long, default_value_t = 20.0)]
+        duration: f64,
+        #[arg(long, default_value_t = 512)]
+        width: u32,
+        #[arg(long, default_value_t = 512)]
+        height: u32,
+        #[arg(long)]
+        dataset: Option<String>,
+        #[arg(long)]
+        technique: Option<String>,
+        /// Sent as `Authorization: Bearer`.
+        #[arg(long)]
+        token: Option<String>,
+        /// Camera edits per second per session.
+        #[arg(long, default_value_t = 10.0)]
+        edit_rate: f64,
+        /// Seconds between TF edits.
+        #[arg(long, default_value_t = 2.0)]
+        tf_interval: f64,
+        /// Print one JSON object on the last line.
+        #[arg(long)]
+        json: bool,
     },
     /// Render a scene file to a PNG (and optionally a PFM of linear radiance).
     Render {
@@ -101,6 +145,8 @@ fn run() -> anyhow::Result<()> {
             mut tokens,
             tokens_file,
             allowed_origins,
+            grace_period_s,
+            gpu_memory_mib,
         } => {
             if let Some(file) = tokens_file {
                 let text = std::fs::read_to_string(&file)
@@ -122,8 +168,51 @@ fn run() -> anyhow::Result<()> {
                         tokens,
                         allowed_origins,
                     },
+                    grace_period: Some(Duration::from_secs(grace_period_s)),
+                    gpu_memory_budget: Some(gpu_memory_mib.saturating_mul(1 << 20)),
                 },
             )
+        }
+        Command::Loadgen {
+            url,
+            sessions,
+            viewers,
+            duration,
+            width,
+            height,
+            dataset,
+            technique,
+            token,
+            edit_rate,
+            tf_interval,
+            json,
+        } => {
+            let config = loadgen::LoadConfig {
+                url,
+                sessions,
+                viewers,
+                duration: Duration::try_from_secs_f64(duration)
+                    .context("--duration must be a positive number of seconds")?,
+                viewport: voxlight_protocol::Viewport { width, height },
+                dataset,
+                technique,
+                token,
+                edit_rate,
+                tf_interval: Duration::try_from_secs_f64(tf_interval)
+                    .context("--tf-interval must be a positive number of seconds")?,
+            };
+            loadgen::validate(&config)?;
+            let runtime = tokio::runtime::Builder::new_multi_thread()
+                .enable_all()
+                .thread_name("voxlight-loadgen")
+                .build()?;
+            let report = runtime.block_on(loadgen::run(config))?;
+            if json {
+                println!("{}", serde_json::to_string(&report)?);
+            } else {
+                println!("{}", serde_json::to_string_pretty(&report)?);
+            }
+            Ok(())
         }
         Command::Render { scene, out, pfm } => offline::render(&scene, &out, pfm.as_deref()),
         Command::Bench {

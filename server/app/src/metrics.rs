@@ -63,8 +63,25 @@ impl Histogram {
 /// Everything `/metrics` reports.
 #[derive(Default)]
 pub struct Metrics {
+    /// Shared sessions alive (with viewers or in their reconnect grace period).
     pub sessions_active: AtomicI64,
     pub sessions_total: AtomicU64,
+    /// Connected viewers over all sessions.
+    pub viewers_active: AtomicI64,
+    /// Viewers that joined an existing session (shared link or reconnect).
+    pub joins_total: AtomicU64,
+    /// Sessions closed after their grace period without viewers.
+    pub sessions_expired_total: AtomicU64,
+    /// Pictures the render thread produced (once per session, whatever the viewer count).
+    pub frames_rendered: AtomicU64,
+    /// Encodings made (once per frame and quality, shared by the viewers wanting it).
+    pub frames_encoded: AtomicU64,
+    /// Frames a viewer never got because a newer one was ready first.
+    pub frames_skipped: AtomicU64,
+    /// Frames sent and not yet acknowledged, over all viewers that acknowledge.
+    pub frames_in_flight: AtomicI64,
+    /// GPU memory accounted to sessions and volumes.
+    pub gpu_memory_bytes: AtomicU64,
     pub frames_jpeg: AtomicU64,
     pub frames_png: AtomicU64,
     pub bytes_sent: AtomicU64,
@@ -84,13 +101,17 @@ fn code_name(code: ErrorCode) -> String {
 }
 
 impl Metrics {
-    pub fn frame_sent(&self, format: FrameFormat, bytes: usize, encode: Duration) {
+    pub fn frame_sent(&self, format: FrameFormat, bytes: usize) {
         match format {
             FrameFormat::Jpeg => &self.frames_jpeg,
             FrameFormat::Png => &self.frames_png,
         }
         .fetch_add(1, Ordering::Relaxed);
         self.bytes_sent.fetch_add(bytes as u64, Ordering::Relaxed);
+    }
+
+    pub fn frame_encoded(&self, encode: Duration) {
+        self.frames_encoded.fetch_add(1, Ordering::Relaxed);
         self.encode_seconds.observe(encode);
     }
 
@@ -125,18 +146,77 @@ impl Metrics {
                 "# HELP {name} {help}\n# TYPE {name} {kind}\n{name} {value}"
             );
         };
+        let gauges: [(&str, &str, &AtomicI64); 3] = [
+            (
+                "voxlight_sessions_active",
+                "Sessions alive (with viewers or within their reconnect grace period).",
+                &self.sessions_active,
+            ),
+            (
+                "voxlight_viewers_active",
+                "Viewers connected, over all sessions.",
+                &self.viewers_active,
+            ),
+            (
+                "voxlight_frames_in_flight",
+                "Frames sent and not yet acknowledged.",
+                &self.frames_in_flight,
+            ),
+        ];
+        for (name, help, value) in gauges {
+            counter(
+                name,
+                help,
+                "gauge",
+                value.load(Ordering::Relaxed).to_string(),
+            );
+        }
         counter(
-            "voxlight_sessions_active",
-            "Sessions open now.",
+            "voxlight_gpu_memory_bytes",
+            "GPU memory accounted to sessions and volumes.",
             "gauge",
-            self.sessions_active.load(Ordering::Relaxed).to_string(),
+            self.gpu_memory_bytes.load(Ordering::Relaxed).to_string(),
         );
-        counter(
-            "voxlight_sessions_total",
-            "Sessions opened since start.",
-            "counter",
-            self.sessions_total.load(Ordering::Relaxed).to_string(),
-        );
+        let counters: [(&str, &str, &AtomicU64); 6] = [
+            (
+                "voxlight_sessions_total",
+                "Sessions opened since start.",
+                &self.sessions_total,
+            ),
+            (
+                "voxlight_joins_total",
+                "Viewers that joined an existing session.",
+                &self.joins_total,
+            ),
+            (
+                "voxlight_sessions_expired_total",
+                "Sessions closed after their grace period without viewers.",
+                &self.sessions_expired_total,
+            ),
+            (
+                "voxlight_frames_rendered_total",
+                "Pictures rendered (once per session, whatever the number of viewers).",
+                &self.frames_rendered,
+            ),
+            (
+                "voxlight_frames_encoded_total",
+                "Frame encodings (once per frame and quality, shared by viewers).",
+                &self.frames_encoded,
+            ),
+            (
+                "voxlight_frames_skipped_total",
+                "Frames a viewer skipped because a newer one was ready first.",
+                &self.frames_skipped,
+            ),
+        ];
+        for (name, help, value) in counters {
+            counter(
+                name,
+                help,
+                "counter",
+                value.load(Ordering::Relaxed).to_string(),
+            );
+        }
         counter(
             "voxlight_bytes_sent_total",
             "Bytes of frames sent.",
@@ -211,8 +291,10 @@ mod tests {
     #[test]
     fn exposition_has_counters_and_cumulative_buckets() {
         let m = Metrics::default();
-        m.frame_sent(FrameFormat::Jpeg, 100, Duration::from_millis(3));
-        m.frame_sent(FrameFormat::Png, 50, Duration::from_millis(30));
+        m.frame_sent(FrameFormat::Jpeg, 100);
+        m.frame_encoded(Duration::from_millis(3));
+        m.frame_sent(FrameFormat::Png, 50);
+        m.frame_encoded(Duration::from_millis(30));
         m.error_sent(ErrorCode::BadMessage);
         m.error_sent(ErrorCode::BadMessage);
         m.gpu_time("raymarch", Duration::from_millis(500));
@@ -225,5 +307,7 @@ mod tests {
         assert!(text.contains("voxlight_encode_seconds_bucket{le=\"0.05\"} 2"));
         assert!(text.contains("voxlight_encode_seconds_bucket{le=\"+Inf\"} 2"));
         assert!(text.contains("voxlight_encode_seconds_count 2"));
+        assert!(text.contains("voxlight_frames_encoded_total 2"));
+        assert!(text.contains("# TYPE voxlight_viewers_active gauge\nvoxlight_viewers_active 0"));
     }
 }

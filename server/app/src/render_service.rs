@@ -1,17 +1,24 @@
 //! The render thread: owns the engine and every session's GPU state, takes commands from the
 //! async side over a bounded channel, and publishes each session's newest frame into a
-//! `watch` slot (newest wins). Sessions needing work get time slices in turn; converged
-//! sessions get none.
+//! `watch` slot (newest wins) that every viewer of the session reads.
+//!
+//! Scheduling: sessions that owe a frame get `TIME_SLICE`s in turn. Sessions edited in the
+//! last `INTERACTIVE_WINDOW` (someone is dragging the camera or editing the TF) come first;
+//! the others still get every `BACKGROUND_TURN`-th slice so they never starve. Converged
+//! sessions and sessions without viewers (in their reconnect grace period) get none.
+//! GPU memory: every session and uploaded volume is counted against a global budget, and a
+//! session, dataset switch or viewport that would exceed it is refused (`gpu_memory`).
 
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Weak};
 use std::time::{Duration, Instant};
 
-use tokio::sync::{mpsc, oneshot, watch};
+use tokio::sync::{broadcast, mpsc, oneshot, watch};
 use voxlight_engine::{
-    Change, Engine, EngineError, Frame, GpuVolume, Renderer, Scene, TechniqueStats,
+    Change, Engine, EngineError, Frame, GpuVolume, Renderer, Scene, TechniqueStats, session_bytes,
 };
-use voxlight_protocol::ErrorCode;
+use voxlight_protocol::{ErrorCode, ServerMessage};
 use voxlight_volumes::Volume;
 
 /// GPU time one session gets before the next session's turn.
@@ -20,11 +27,19 @@ pub const TIME_SLICE: Duration = Duration::from_millis(30);
 /// Commands queued to the render thread before senders wait.
 const COMMAND_QUEUE: usize = 256;
 
+/// A session edited this recently counts as interactive and is served first.
+pub const INTERACTIVE_WINDOW: Duration = Duration::from_secs(1);
+
+/// While interactive sessions exist, every this-many-th slice goes to the others.
+const BACKGROUND_TURN: u64 = 4;
+
 pub type SessionId = u64;
 
 /// A frame as rendered, before encoding.
 #[derive(Debug)]
 pub struct RenderedFrame {
+    /// The session's frame counter (FrameMeta.seq): the same for every viewer.
+    pub frame_number: u64,
     pub frame: Frame,
     pub technique: &'static str,
     /// The session's edit counter when this picture's state was applied.
@@ -38,12 +53,8 @@ pub struct RenderedFrame {
 
 pub type FrameSlot = watch::Sender<Option<Arc<RenderedFrame>>>;
 
-/// Something the render thread tells a session outside frames.
-#[derive(Debug, Clone)]
-pub struct RenderEvent {
-    pub code: ErrorCode,
-    pub message: String,
-}
+/// Messages for every viewer of a session (edits, viewer lists, render errors).
+pub type SessionEvents = broadcast::Sender<Arc<ServerMessage>>;
 
 pub enum Command {
     Open {
@@ -53,9 +64,13 @@ pub enum Command {
         scene: Scene,
         version: u64,
         frames: FrameSlot,
-        events: mpsc::Sender<RenderEvent>,
+        events: SessionEvents,
+        /// The session's viewer count: with none it gets no GPU time (but keeps its state).
+        viewers: Arc<AtomicUsize>,
         reply: oneshot::Sender<Result<(), EngineError>>,
     },
+    /// Look again at which sessions want GPU time (a viewer came back).
+    Wake,
     Edit {
         id: SessionId,
         scene: Scene,
@@ -86,6 +101,7 @@ pub fn error_code(error: &EngineError) -> ErrorCode {
         }
         EngineError::UnknownTechnique(_) => ErrorCode::UnknownTechnique,
         EngineError::InvalidScene(_) => ErrorCode::BadValue,
+        EngineError::MemoryBudget { .. } => ErrorCode::GpuMemory,
         EngineError::NoAdapter(_) | EngineError::Gpu(_) | EngineError::DeviceLost => ErrorCode::Gpu,
     }
 }
@@ -111,21 +127,39 @@ struct Session {
     scene: Scene,
     version: u64,
     frames: FrameSlot,
-    events: mpsc::Sender<RenderEvent>,
+    events: SessionEvents,
+    frame_number: u64,
+    viewers: Arc<AtomicUsize>,
+    last_edit: Instant,
     /// A frame of the current state is still owed to viewers.
     dirty: bool,
     failed: bool,
 }
 
+impl Session {
+    fn wants_gpu(&self) -> bool {
+        self.dirty && !self.failed && self.viewers.load(Ordering::Relaxed) > 0
+    }
+
+    fn report(&self, error: &EngineError) {
+        let _ = self.events.send(Arc::new(ServerMessage::Error {
+            code: error_code(error),
+            message: error.to_string(),
+        }));
+    }
+}
+
 /// Starts the render thread. It stops when every `RenderHandle` is dropped.
+/// `memory_budget`: GPU bytes all sessions and volumes together may use.
 pub fn spawn(
     engine: Arc<Engine>,
     metrics: Arc<crate::metrics::Metrics>,
+    memory_budget: u64,
 ) -> std::io::Result<(RenderHandle, std::thread::JoinHandle<()>)> {
     let (commands, receiver) = mpsc::channel(COMMAND_QUEUE);
     let thread = std::thread::Builder::new()
         .name("voxlight-render".into())
-        .spawn(move || RenderThread::new(engine, metrics).run(receiver))?;
+        .spawn(move || RenderThread::new(engine, metrics, memory_budget).run(receiver))?;
     Ok((RenderHandle { commands }, thread))
 }
 
@@ -134,25 +168,84 @@ struct RenderThread {
     metrics: Arc<crate::metrics::Metrics>,
     sessions: HashMap<SessionId, Session>,
     volumes: HashMap<String, Weak<GpuVolume>>,
+    memory_budget: u64,
     /// Round-robin position.
     last_served: SessionId,
+    /// Slices served, for the background turn.
+    turn: u64,
 }
 
 impl RenderThread {
-    fn new(engine: Arc<Engine>, metrics: Arc<crate::metrics::Metrics>) -> Self {
+    fn new(engine: Arc<Engine>, metrics: Arc<crate::metrics::Metrics>, memory_budget: u64) -> Self {
         Self {
             engine,
             metrics,
             sessions: HashMap::new(),
             volumes: HashMap::new(),
+            memory_budget,
             last_served: 0,
+            turn: 0,
         }
+    }
+
+    /// GPU bytes in use: every session's buffers plus each live volume once.
+    fn memory_in_use(&self) -> u64 {
+        let sessions: u64 = self
+            .sessions
+            .values()
+            .map(|s| session_bytes(s.scene.viewport.width, s.scene.viewport.height))
+            .sum();
+        let volumes: u64 = self
+            .volumes
+            .values()
+            .filter_map(Weak::upgrade)
+            .map(|v| v.bytes)
+            .sum();
+        sessions + volumes
+    }
+
+    /// Refuses a session state that would take the total over the budget. `replacing`: the
+    /// session whose current buffers the new ones replace; `volume`: a volume to upload.
+    fn check_memory(
+        &self,
+        replacing: Option<SessionId>,
+        scene: &Scene,
+        volume: Option<&Volume>,
+    ) -> Result<(), EngineError> {
+        let freed = replacing
+            .and_then(|id| self.sessions.get(&id))
+            .map_or(0, |s| {
+                session_bytes(s.scene.viewport.width, s.scene.viewport.height)
+            });
+        let upload = volume
+            .filter(|v| {
+                self.volumes
+                    .get(&v.name)
+                    .is_none_or(|w| w.strong_count() == 0)
+            })
+            .map_or(0, |v| GpuVolume::bytes_needed(&self.engine.gpu, v.dims));
+        let needed = session_bytes(scene.viewport.width, scene.viewport.height) + upload;
+        let in_use = self.memory_in_use() - freed;
+        if in_use + needed > self.memory_budget {
+            return Err(EngineError::MemoryBudget {
+                needed,
+                in_use,
+                budget: self.memory_budget,
+            });
+        }
+        Ok(())
+    }
+
+    fn publish_memory(&self) {
+        self.metrics
+            .gpu_memory_bytes
+            .store(self.memory_in_use(), Ordering::Relaxed);
     }
 
     fn run(mut self, mut receiver: mpsc::Receiver<Command>) {
         tracing::info!("render thread started");
         loop {
-            let busy = self.sessions.values().any(|s| s.dirty && !s.failed);
+            let busy = self.sessions.values().any(Session::wants_gpu);
             if !busy {
                 match receiver.blocking_recv() {
                     Some(Command::Stop) | None => break,
@@ -180,19 +273,19 @@ impl RenderThread {
         tracing::info!("render thread stopped");
     }
 
-    /// The next session after the last one served that owes a frame.
-    fn next_session(&self) -> Option<SessionId> {
-        let mut ids: Vec<SessionId> = self
+    /// The next session to serve: round-robin over the interactive sessions that owe a
+    /// frame, with every `BACKGROUND_TURN`-th slice round-robin over all of them.
+    fn next_session(&mut self) -> Option<SessionId> {
+        let now = Instant::now();
+        let mut waiting: Vec<(SessionId, bool)> = self
             .sessions
             .iter()
-            .filter(|(_, s)| s.dirty && !s.failed)
-            .map(|(id, _)| *id)
+            .filter(|(_, s)| s.wants_gpu())
+            .map(|(id, s)| (*id, now.duration_since(s.last_edit) < INTERACTIVE_WINDOW))
             .collect();
-        ids.sort_unstable();
-        ids.iter()
-            .copied()
-            .find(|&id| id > self.last_served)
-            .or(ids.first().copied())
+        waiting.sort_unstable();
+        self.turn += 1;
+        choose_session(&mut waiting, self.last_served, self.turn)
     }
 
     fn gpu_volume(&mut self, volume: &Volume) -> Result<Arc<GpuVolume>, EngineError> {
@@ -216,11 +309,15 @@ impl RenderThread {
                 version,
                 frames,
                 events,
+                viewers,
                 reply,
             } => {
-                let result = self.gpu_volume(&volume).and_then(|gpu_volume| {
-                    self.engine.create_renderer(&technique, gpu_volume, &scene)
-                });
+                let result = self
+                    .check_memory(None, &scene, Some(&volume))
+                    .and_then(|()| self.gpu_volume(&volume))
+                    .and_then(|gpu_volume| {
+                        self.engine.create_renderer(&technique, gpu_volume, &scene)
+                    });
                 match result {
                     Ok(renderer) => {
                         self.sessions.insert(
@@ -231,10 +328,14 @@ impl RenderThread {
                                 version,
                                 frames,
                                 events,
+                                frame_number: 0,
+                                viewers,
+                                last_edit: Instant::now(),
                                 dirty: true,
                                 failed: false,
                             },
                         );
+                        self.publish_memory();
                         let _ = reply.send(Ok(()));
                     }
                     Err(e) => {
@@ -248,24 +349,32 @@ impl RenderThread {
                 changes,
                 version,
             } => {
+                if changes.contains(&Change::Viewport)
+                    && let Err(e) = self.check_memory(Some(id), &scene, None)
+                {
+                    if let Some(session) = self.sessions.get(&id) {
+                        session.report(&e);
+                    }
+                    return;
+                }
                 let Some(session) = self.sessions.get_mut(&id) else {
                     return;
                 };
                 session.scene = scene;
                 session.version = version;
                 session.dirty = true;
+                session.last_edit = Instant::now();
                 for change in &changes {
                     if let Err(e) = session.renderer.apply(&self.engine, &session.scene, change) {
                         session.failed = true;
-                        let _ = session.events.try_send(RenderEvent {
-                            code: error_code(&e),
-                            message: e.to_string(),
-                        });
+                        session.report(&e);
                         break;
                     }
                     session.failed = false;
                 }
+                self.publish_memory();
             }
+            Command::Wake => {}
             Command::Rebuild {
                 id,
                 volume,
@@ -279,10 +388,12 @@ impl RenderThread {
                     let _ = reply.send(Err(EngineError::Gpu("session is closed".into())));
                     return;
                 };
-                let gpu_volume = match volume {
-                    Some(volume) => self.gpu_volume(&volume),
-                    None => Ok(current),
-                };
+                let gpu_volume = self
+                    .check_memory(Some(id), &scene, volume.as_deref())
+                    .and_then(|()| match volume {
+                        Some(volume) => self.gpu_volume(&volume),
+                        None => Ok(current),
+                    });
                 let result =
                     gpu_volume.and_then(|v| self.engine.create_renderer(&technique, v, &scene));
                 match (result, self.sessions.get_mut(&id)) {
@@ -290,8 +401,11 @@ impl RenderThread {
                         session.renderer = renderer;
                         session.scene = scene;
                         session.version = version;
+                        session.last_edit = Instant::now();
                         session.dirty = true;
                         session.failed = false;
+                        self.volumes.retain(|_, weak| weak.strong_count() > 0);
+                        self.publish_memory();
                         let _ = reply.send(Ok(()));
                     }
                     (Err(e), _) => {
@@ -305,6 +419,7 @@ impl RenderThread {
             Command::Close { id } => {
                 self.sessions.remove(&id);
                 self.volumes.retain(|_, weak| weak.strong_count() > 0);
+                self.publish_memory();
             }
             Command::Stop => {}
         }
@@ -327,7 +442,10 @@ impl RenderThread {
                 self.metrics
                     .gpu_time(session.renderer.technique_name(), report.gpu_time);
                 session.dirty = !frame.converged;
+                session.frame_number += 1;
+                self.metrics.frames_rendered.fetch_add(1, Ordering::Relaxed);
                 let rendered = RenderedFrame {
+                    frame_number: session.frame_number,
                     technique: session.renderer.technique_name(),
                     scene_version: session.version,
                     render_ms: started.elapsed().as_secs_f32() * 1000.0,
@@ -340,11 +458,68 @@ impl RenderThread {
             Err(e) => {
                 tracing::error!(session = id, error = %e, "rendering failed");
                 session.failed = true;
-                let _ = session.events.try_send(RenderEvent {
-                    code: error_code(&e),
-                    message: e.to_string(),
-                });
+                session.report(&e);
             }
         }
+    }
+}
+
+/// Picks from `waiting` (sorted (id, interactive) pairs): interactive sessions only, except
+/// on every `BACKGROUND_TURN`-th turn; round-robin after `last`.
+fn choose_session(
+    waiting: &mut Vec<(SessionId, bool)>,
+    last: SessionId,
+    turn: u64,
+) -> Option<SessionId> {
+    let any_interactive = waiting.iter().any(|&(_, interactive)| interactive);
+    if any_interactive && !turn.is_multiple_of(BACKGROUND_TURN) {
+        waiting.retain(|&(_, interactive)| interactive);
+    }
+    pick_round_robin(waiting, last)
+}
+
+/// The first id after `last` in the sorted `waiting` list, wrapping around.
+fn pick_round_robin(waiting: &[(SessionId, bool)], last: SessionId) -> Option<SessionId> {
+    waiting
+        .iter()
+        .map(|&(id, _)| id)
+        .find(|&id| id > last)
+        .or(waiting.first().map(|&(id, _)| id))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn round_robin_wraps_and_skips_nothing() {
+        let waiting = [(2, true), (5, false), (9, true)];
+        assert_eq!(pick_round_robin(&waiting, 0), Some(2));
+        assert_eq!(pick_round_robin(&waiting, 2), Some(5));
+        assert_eq!(pick_round_robin(&waiting, 5), Some(9));
+        assert_eq!(pick_round_robin(&waiting, 9), Some(2));
+        assert_eq!(pick_round_robin(&[], 3), None);
+    }
+
+    #[test]
+    fn interactive_sessions_come_first_and_others_never_starve() {
+        let all = vec![(1, false), (2, true), (3, false), (4, true)];
+        let mut served = Vec::new();
+        let mut last = 0;
+        for turn in 1..=16 {
+            let id = choose_session(&mut all.clone(), last, turn).unwrap();
+            served.push(id);
+            last = id;
+        }
+        let count = |id| served.iter().filter(|&&s| s == id).count();
+        assert!(count(2) + count(4) >= 12, "{served:?}");
+        assert!(
+            count(1) >= 1 && count(3) >= 1,
+            "background starved: {served:?}"
+        );
+        // With no interactive session, plain round-robin.
+        let idle = vec![(1, false), (3, false)];
+        assert_eq!(choose_session(&mut idle.clone(), 1, 1), Some(3));
+        assert_eq!(choose_session(&mut idle.clone(), 3, 2), Some(1));
     }
 }

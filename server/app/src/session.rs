@@ -1,7 +1,10 @@
-//! One WebSocket connection = one rendering session (for now). The reader side owns the
-//! session's state and turns client messages into engine changes; the writer side encodes the
-//! newest rendered frame (off the runtime) and sends it with text messages.
+//! One WebSocket connection = one viewer of a shared session (`hub`). The reader side turns
+//! the viewer's messages into edits of the session (last writer wins, every viewer told with
+//! `edited`); the writer side sends the session's newest frame when this viewer is ready for
+//! one (its acknowledgement window, or the socket accepting the last one), in the encoding
+//! chosen for it, plus the session's broadcast messages and this viewer's own replies.
 
+use std::collections::VecDeque;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU8, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
@@ -9,18 +12,21 @@ use std::time::{Duration, Instant};
 use axum::extract::ws::{Message, Utf8Bytes, WebSocket};
 use futures_util::stream::{SplitSink, SplitStream};
 use futures_util::{SinkExt, StreamExt};
-use tokio::sync::{mpsc, oneshot, watch};
+use tokio::sync::broadcast::error::RecvError;
+use tokio::sync::{broadcast, mpsc, oneshot, watch};
 use voxlight_engine::camera::CameraBasis;
 use voxlight_engine::scene::{validate_lights, validate_params, validate_viewport};
 use voxlight_engine::{Change, Scene};
 use voxlight_protocol::{
-    ClientMessage, ErrorCode, FrameFormat, FrameMeta, MAX_MESSAGE_BYTES, MAX_MESSAGES_PER_SECOND,
-    PROTOCOL_VERSION, RenderParams, ServerMessage, SessionState, Stats, Viewport, join_frame,
+    ClientMessage, ErrorCode, MAX_FRAMES_IN_FLIGHT, MAX_MESSAGE_BYTES, MAX_MESSAGES_PER_SECOND,
+    PROTOCOL_VERSION, RenderParams, ServerMessage, Stats, ViewerInfo, Viewport,
 };
 
 use crate::AppState;
+use crate::adapt::QualityController;
+use crate::hub::{EVENT_BUFFER, Encoding, SessionCore, SharedSession};
 use crate::metrics::Metrics;
-use crate::render_service::{Command, RenderEvent, RenderedFrame, SessionId};
+use crate::render_service::{Command, SessionId};
 
 /// How long a client may take to say `hello`.
 const HELLO_TIMEOUT: Duration = Duration::from_secs(30);
@@ -32,6 +38,8 @@ pub const DEFAULT_JPEG_QUALITY: u8 = 85;
 pub const DEFAULT_ITERATIONS: u32 = 128;
 /// Interval of `stats` messages.
 const STATS_INTERVAL: Duration = Duration::from_millis(500);
+/// A viewer whose socket accepts nothing for this long is disconnected.
+const SEND_TIMEOUT: Duration = Duration::from_secs(30);
 
 static NEXT_SESSION: AtomicU64 = AtomicU64::new(1);
 
@@ -40,13 +48,13 @@ type Stream = SplitStream<WebSocket>;
 
 /// A protocol-level failure answered with an `error` message.
 #[derive(Debug)]
-struct Reply {
-    code: ErrorCode,
-    message: String,
+pub struct Reply {
+    pub code: ErrorCode,
+    pub message: String,
 }
 
 impl Reply {
-    fn new(code: ErrorCode, message: impl Into<String>) -> Self {
+    pub fn new(code: ErrorCode, message: impl Into<String>) -> Self {
         Self {
             code,
             message: message.into(),
@@ -95,43 +103,12 @@ fn parse(message: Message) -> Result<Option<ClientMessage>, Reply> {
     }
 }
 
-/// Everything one session edits, and the scene the engine renders from it.
-struct SessionCore {
-    id: SessionId,
-    dataset: String,
-    technique: String,
-    scene: Scene,
-    version: u64,
-    edit_clock: EditClock,
-}
-
-/// The oldest edit no frame has shown yet (scene version, arrival), for the input-to-frame
-/// latency metric.
-type EditClock = Arc<std::sync::Mutex<Option<(u64, Instant)>>>;
-
-impl SessionCore {
-    /// Counts an edit: the next scene version, remembered with its arrival time unless an
-    /// older edit is still waiting for its frame.
-    fn bump_version(&mut self, arrived: Instant) {
-        self.version += 1;
-        if let Ok(mut pending) = self.edit_clock.lock() {
-            pending.get_or_insert((self.version, arrived));
-        }
-    }
-
-    fn state(&self, jpeg_quality: u8) -> SessionState {
-        SessionState {
-            dataset: self.dataset.clone(),
-            technique: self.technique.clone(),
-            camera: self.scene.camera,
-            tf: self.scene.tf.clone(),
-            lights: self.scene.lights.clone(),
-            params: self.scene.params,
-            viewport: self.scene.viewport,
-            iterations: self.scene.target_iterations,
-            jpeg_quality,
-        }
-    }
+/// What the reader shares with the writer of one connection.
+struct ViewerLink {
+    /// The viewer's own JPEG quality (the adaptation never goes above it).
+    jpeg_quality: AtomicU8,
+    /// Highest frame `seq` acknowledged.
+    acked: watch::Sender<u64>,
 }
 
 /// Serves one WebSocket connection until it closes or the server shuts down.
@@ -142,8 +119,8 @@ pub async fn handle_socket(socket: WebSocket, state: Arc<AppState>) {
         _ = state.shutdown.cancelled() => None,
     };
     let Some(hello) = hello else { return };
-    let session = match open_session(&state, hello).await {
-        Ok(session) => session,
+    let viewer = match open_or_join(&state, hello).await {
+        Ok(viewer) => viewer,
         Err(reply) => {
             state.metrics.error_sent(reply.code);
             let _ = sink.send(text(&error_message(reply))).await;
@@ -151,39 +128,87 @@ pub async fn handle_socket(socket: WebSocket, state: Arc<AppState>) {
             return;
         }
     };
-    let OpenSession {
-        core,
-        frames,
+    let Viewer {
+        session,
+        info,
         events,
         welcome,
-    } = session;
-    let id = core.id;
-    tracing::info!(session = id, dataset = %core.dataset, "session opened");
-    let jpeg_quality = Arc::new(AtomicU8::new(DEFAULT_JPEG_QUALITY));
+        window,
+    } = viewer;
+    state.metrics.viewers_active.fetch_add(1, Ordering::Relaxed);
+    tracing::info!(
+        session = session.render_id,
+        viewer = info.id,
+        viewers = session.viewers().len(),
+        "viewer connected"
+    );
+    let link = Arc::new(ViewerLink {
+        jpeg_quality: AtomicU8::new(DEFAULT_JPEG_QUALITY),
+        acked: watch::Sender::new(0),
+    });
     let (outbox, outbox_rx) = mpsc::channel(OUTBOX);
     let _ = outbox.send(welcome).await;
+    session.publish(ServerMessage::Viewers {
+        viewers: session.viewers(),
+    });
     let writer = state.tracker.spawn(write_loop(
         sink,
         outbox_rx,
-        frames,
+        session.clone(),
         events,
-        jpeg_quality.clone(),
+        link.clone(),
+        window,
         state.clone(),
-        core.edit_clock.clone(),
     ));
-    state
-        .metrics
-        .sessions_active
-        .fetch_add(1, Ordering::Relaxed);
-    state.metrics.sessions_total.fetch_add(1, Ordering::Relaxed);
-    read_loop(&state, core, stream, outbox, jpeg_quality).await;
-    let _ = state.render.send(Command::Close { id }).await;
+    read_loop(&state, &session, &info, stream, outbox, &link).await;
+    leave(&state, &session, &info);
     let _ = writer.await;
-    state
-        .metrics
-        .sessions_active
-        .fetch_sub(1, Ordering::Relaxed);
-    tracing::info!(session = id, "session closed");
+}
+
+/// Takes a viewer off its session; the last one out starts the grace period, after which
+/// the session and its GPU state are dropped unless someone came back.
+fn leave(state: &Arc<AppState>, session: &Arc<SharedSession>, viewer: &ViewerInfo) {
+    let (left, generation) = session.remove_viewer(viewer.id);
+    state.metrics.viewers_active.fetch_sub(1, Ordering::Relaxed);
+    tracing::info!(
+        session = session.render_id,
+        viewer = viewer.id,
+        viewers = left,
+        "viewer left"
+    );
+    session.publish(ServerMessage::Viewers {
+        viewers: session.viewers(),
+    });
+    if left > 0 {
+        return;
+    }
+    let (state, id) = (state.clone(), session.id.clone());
+    let grace = state.hub.grace;
+    state.tracker.clone().spawn(async move {
+        tokio::select! {
+            _ = tokio::time::sleep(grace) => {}
+            _ = state.shutdown.cancelled() => {}
+        }
+        if let Some(session) = state.hub.expire(&id, generation) {
+            let _ = state
+                .render
+                .send(Command::Close {
+                    id: session.render_id,
+                })
+                .await;
+            state
+                .metrics
+                .sessions_active
+                .fetch_sub(1, Ordering::Relaxed);
+            if !state.shutdown.is_cancelled() {
+                state
+                    .metrics
+                    .sessions_expired_total
+                    .fetch_add(1, Ordering::Relaxed);
+            }
+            tracing::info!(session = session.render_id, "session closed");
+        }
+    });
 }
 
 /// Answers everything before a valid `hello` with `not_ready`.
@@ -220,11 +245,14 @@ async fn wait_for_hello(
     }
 }
 
-struct OpenSession {
-    core: SessionCore,
-    frames: watch::Receiver<Option<Arc<RenderedFrame>>>,
-    events: mpsc::Receiver<RenderEvent>,
+/// A connection admitted to a session.
+struct Viewer {
+    session: Arc<SharedSession>,
+    info: ViewerInfo,
+    events: broadcast::Receiver<Arc<ServerMessage>>,
     welcome: ServerMessage,
+    /// Frames in flight before acknowledgements (None: the client does not acknowledge).
+    window: Option<u32>,
 }
 
 async fn load_dataset(
@@ -276,13 +304,39 @@ fn check_technique(state: &AppState, name: &str) -> Result<(), Reply> {
     }
 }
 
-async fn open_session(state: &Arc<AppState>, hello: ClientMessage) -> Result<OpenSession, Reply> {
+fn welcome(
+    state: &AppState,
+    session: &SharedSession,
+    core: &SessionCore,
+    viewer: &ViewerInfo,
+    joined: bool,
+) -> Result<ServerMessage, Reply> {
+    Ok(ServerMessage::Welcome {
+        protocol: PROTOCOL_VERSION,
+        session: session.id.clone(),
+        server_version: env!("CARGO_PKG_VERSION").to_owned(),
+        adapter: state.adapter.clone(),
+        dataset: state
+            .catalog
+            .info(&core.dataset)
+            .ok_or_else(|| Reply::new(ErrorCode::Internal, "dataset vanished"))?,
+        techniques: state.techniques.clone(),
+        state: core.state(DEFAULT_JPEG_QUALITY),
+        viewer: viewer.clone(),
+        viewers: session.viewers(),
+        joined,
+    })
+}
+
+async fn open_or_join(state: &Arc<AppState>, hello: ClientMessage) -> Result<Viewer, Reply> {
     let ClientMessage::Hello {
         protocol,
-        session,
+        session: join,
         viewport,
         dataset,
         technique,
+        name,
+        max_in_flight,
         ..
     } = hello
     else {
@@ -294,11 +348,34 @@ async fn open_session(state: &Arc<AppState>, hello: ClientMessage) -> Result<Ope
             format!("this server speaks protocol {PROTOCOL_VERSION}, the client {protocol}"),
         ));
     }
-    if session.is_some() {
-        return Err(Reply::new(
-            ErrorCode::BadValue,
-            "joining sessions is not supported yet; omit `session`",
-        ));
+    let window = match max_in_flight {
+        None => None,
+        Some(n) if (1..=MAX_FRAMES_IN_FLIGHT).contains(&n) => Some(n),
+        Some(n) => {
+            return Err(Reply::bad(format!(
+                "max_in_flight must be in 1..={MAX_FRAMES_IN_FLIGHT}, got {n}"
+            )));
+        }
+    };
+    if let Some(id) = join {
+        let (session, info, _) = state.hub.join(&id, name.as_deref())?;
+        state.metrics.joins_total.fetch_add(1, Ordering::Relaxed);
+        // Subscribe before reading the state: an edit in between arrives twice (harmless)
+        // rather than never.
+        let events = session.subscribe();
+        // The session may have been paused without viewers.
+        let _ = state.render.send(Command::Wake).await;
+        let welcome = {
+            let core = session.core.lock().await;
+            welcome(state, &session, &core, &info, true)?
+        };
+        return Ok(Viewer {
+            session,
+            info,
+            events,
+            welcome,
+            window,
+        });
     }
     let viewport = viewport.unwrap_or_default();
     check_viewport(state, &viewport)?;
@@ -314,27 +391,32 @@ async fn open_session(state: &Arc<AppState>, hello: ClientMessage) -> Result<Ope
         target_iterations: DEFAULT_ITERATIONS,
         ..Scene::default()
     };
-    let core = SessionCore {
-        id: NEXT_SESSION.fetch_add(1, Ordering::Relaxed),
-        dataset: dataset.clone(),
-        technique: technique.clone(),
-        scene: scene.clone(),
-        version: 0,
-        edit_clock: Default::default(),
-    };
+    let render_id: SessionId = NEXT_SESSION.fetch_add(1, Ordering::Relaxed);
     let (frame_slot, frames) = watch::channel(None);
-    let (event_slot, events) = mpsc::channel(16);
+    let (events_tx, _) = broadcast::channel(EVENT_BUFFER);
+    let session = Arc::new(SharedSession::new(
+        render_id,
+        SessionCore {
+            dataset,
+            technique: technique.clone(),
+            scene: scene.clone(),
+            version: 0,
+        },
+        frames,
+        events_tx.clone(),
+    ));
     let (reply, opened) = oneshot::channel();
     state
         .render
         .send(Command::Open {
-            id: core.id,
+            id: render_id,
             volume,
             technique,
             scene,
             version: 0,
             frames: frame_slot,
-            events: event_slot,
+            events: events_tx,
+            viewers: session.viewer_count(),
             reply,
         })
         .await
@@ -343,23 +425,32 @@ async fn open_session(state: &Arc<AppState>, hello: ClientMessage) -> Result<Ope
         .await
         .map_err(|_| Reply::new(ErrorCode::Internal, "render thread dropped the request"))?
         .map_err(|e| Reply::new(crate::render_service::error_code(&e), e.to_string()))?;
-    let welcome = ServerMessage::Welcome {
-        protocol: PROTOCOL_VERSION,
-        session: format!("{:016x}", core.id),
-        server_version: env!("CARGO_PKG_VERSION").to_owned(),
-        adapter: state.adapter.clone(),
-        dataset: state
-            .catalog
-            .info(&dataset)
-            .ok_or_else(|| Reply::new(ErrorCode::Internal, "dataset vanished"))?,
-        techniques: state.techniques.clone(),
-        state: core.state(DEFAULT_JPEG_QUALITY),
+    let events = session.subscribe();
+    let info = match state.hub.insert(session.clone(), name.as_deref()) {
+        Ok(info) => info,
+        Err(reply) => {
+            let _ = state.render.send(Command::Close { id: render_id }).await;
+            return Err(reply);
+        }
     };
-    Ok(OpenSession {
-        core,
-        frames,
+    // The render thread saw the session before its first viewer: look again.
+    let _ = state.render.send(Command::Wake).await;
+    state
+        .metrics
+        .sessions_active
+        .fetch_add(1, Ordering::Relaxed);
+    state.metrics.sessions_total.fetch_add(1, Ordering::Relaxed);
+    tracing::info!(session = render_id, "session opened");
+    let welcome = {
+        let core = session.core.lock().await;
+        welcome(state, &session, &core, &info, false)?
+    };
+    Ok(Viewer {
+        session,
+        info,
         events,
         welcome,
+        window,
     })
 }
 
@@ -403,10 +494,11 @@ impl RateLimit {
 
 async fn read_loop(
     state: &Arc<AppState>,
-    mut core: SessionCore,
+    session: &Arc<SharedSession>,
+    viewer: &ViewerInfo,
     mut stream: Stream,
     outbox: mpsc::Sender<ServerMessage>,
-    jpeg_quality: Arc<AtomicU8>,
+    link: &ViewerLink,
 ) {
     let mut limit = RateLimit::new();
     loop {
@@ -418,7 +510,7 @@ async fn read_loop(
             Some(Ok(Message::Close(_))) | None => return,
             Some(Ok(message)) => message,
             Some(Err(e)) => {
-                tracing::debug!(session = core.id, error = %e, "websocket read failed");
+                tracing::debug!(session = session.render_id, viewer = viewer.id, error = %e, "websocket read failed");
                 return;
             }
         };
@@ -437,14 +529,12 @@ async fn read_loop(
             continue;
         }
         let result = match parse(message) {
-            Ok(Some(message)) => {
-                handle_message(state, &mut core, message, &outbox, &jpeg_quality).await
-            }
+            Ok(Some(message)) => handle_message(state, session, viewer, message, link).await,
             Ok(None) => Ok(()),
             Err(reply) => Err(reply),
         };
         if let Err(reply) = result {
-            tracing::debug!(session = core.id, code = ?reply.code, message = %reply.message, "client error");
+            tracing::debug!(session = session.render_id, viewer = viewer.id, code = ?reply.code, "client error");
             if outbox.send(error_message(reply)).await.is_err() {
                 return;
             }
@@ -452,37 +542,53 @@ async fn read_loop(
     }
 }
 
+/// Applies one message. Session edits happen under the session lock, so every viewer sees
+/// them in the order they were applied (last writer wins).
 async fn handle_message(
     state: &Arc<AppState>,
-    core: &mut SessionCore,
+    session: &SharedSession,
+    viewer: &ViewerInfo,
     message: ClientMessage,
-    outbox: &mpsc::Sender<ServerMessage>,
-    jpeg_quality: &AtomicU8,
+    link: &ViewerLink,
 ) -> Result<(), Reply> {
     let arrived = Instant::now();
-    let mut scene = core.scene.clone();
-    let change = match message {
+    match message {
         ClientMessage::Hello { .. } => {
             return Err(Reply::new(
                 ErrorCode::NotReady,
                 "this connection already said hello",
             ));
         }
+        ClientMessage::Ack { seq } => {
+            link.acked.send_if_modified(|acked| {
+                let newer = seq > *acked;
+                if newer {
+                    *acked = seq;
+                }
+                newer
+            });
+            return Ok(());
+        }
+        _ => {}
+    }
+    let mut core = session.core.lock().await;
+    let mut scene = core.scene.clone();
+    let (change, edit) = match message {
         ClientMessage::Camera(camera) => {
             CameraBasis::new(&camera).map_err(Reply::bad)?;
             scene.camera = camera;
-            Change::Camera
+            (Change::Camera, ClientMessage::Camera(camera))
         }
         ClientMessage::Tf(tf) => {
             voxlight_engine::tf::validate(&tf).map_err(Reply::bad)?;
             let change = Change::tf(&scene.tf, &tf);
-            scene.tf = tf;
-            change
+            scene.tf = tf.clone();
+            (change, ClientMessage::Tf(tf))
         }
         ClientMessage::Lights { lights } => {
             validate_lights(&lights).map_err(Reply::bad)?;
-            scene.lights = lights;
-            Change::Lights
+            scene.lights = lights.clone();
+            (Change::Lights, ClientMessage::Lights { lights })
         }
         ClientMessage::Viewport(viewport) => {
             check_viewport(state, &viewport)?;
@@ -490,7 +596,7 @@ async fn handle_message(
                 return Ok(());
             }
             scene.viewport = viewport;
-            Change::Viewport
+            (Change::Viewport, ClientMessage::Viewport(viewport))
         }
         ClientMessage::Params {
             density_scale,
@@ -502,7 +608,12 @@ async fn handle_message(
             params.g = g.unwrap_or(params.g);
             params.exposure = exposure.unwrap_or(params.exposure);
             validate_params(params).map_err(Reply::bad)?;
-            Change::Params
+            let edit = ClientMessage::Params {
+                density_scale: Some(params.density_scale),
+                g: Some(params.g),
+                exposure: Some(params.exposure),
+            };
+            (Change::Params, edit)
         }
         ClientMessage::Quality {
             jpeg_quality: quality,
@@ -514,13 +625,17 @@ async fn handle_message(
                         "jpeg_quality must be in 1..=100, got {q}"
                     )));
                 }
-                jpeg_quality.store(q, Ordering::Relaxed);
+                link.jpeg_quality.store(q, Ordering::Relaxed);
             }
             match iterations {
                 None => return Ok(()),
                 Some(n) if (1..=65536).contains(&n) => {
                     scene.target_iterations = n;
-                    Change::Iterations
+                    let edit = ClientMessage::Quality {
+                        jpeg_quality: None,
+                        iterations: Some(n),
+                    };
+                    (Change::Iterations, edit)
                 }
                 Some(n) => {
                     return Err(Reply::bad(format!(
@@ -531,9 +646,14 @@ async fn handle_message(
         }
         ClientMessage::Technique { name } => {
             check_technique(state, &name)?;
-            core.bump_version(arrived);
-            rebuild(state, core, None, name.clone(), scene).await?;
-            core.technique = name;
+            bump_version(session, &mut core, arrived);
+            rebuild(state, session, &mut core, None, name.clone(), scene).await?;
+            core.technique = name.clone();
+            session.publish(ServerMessage::Edited {
+                by: viewer.clone(),
+                version: core.version,
+                edit: Box::new(ClientMessage::Technique { name }),
+            });
             return Ok(());
         }
         ClientMessage::Dataset { name } => {
@@ -541,37 +661,56 @@ async fn handle_message(
             // A new dataset is a new scene: its own default TF and lights.
             scene.tf = crate::datasets::default_tf(&volume);
             scene.lights = crate::datasets::default_lights_for(&volume);
-            core.bump_version(arrived);
-            rebuild(state, core, Some(volume), core.technique.clone(), scene).await?;
+            bump_version(session, &mut core, arrived);
+            let technique = core.technique.clone();
+            rebuild(state, session, &mut core, Some(volume), technique, scene).await?;
             core.dataset = name.clone();
             let dataset = state
                 .catalog
                 .info(&name)
                 .ok_or_else(|| Reply::new(ErrorCode::Internal, "dataset vanished"))?;
-            let state = core.state(jpeg_quality.load(Ordering::Relaxed));
-            let _ = outbox
-                .send(ServerMessage::DatasetLoaded { dataset, state })
-                .await;
+            session.publish(ServerMessage::DatasetLoaded {
+                dataset,
+                state: core.state(link.jpeg_quality.load(Ordering::Relaxed)),
+                by: Some(viewer.clone()),
+            });
             return Ok(());
         }
+        ClientMessage::Hello { .. } | ClientMessage::Ack { .. } => return Ok(()),
     };
     core.scene = scene.clone();
-    core.bump_version(arrived);
+    bump_version(session, &mut core, arrived);
     state
         .render
         .send(Command::Edit {
-            id: core.id,
+            id: session.render_id,
             scene,
             changes: vec![change],
             version: core.version,
         })
         .await
-        .map_err(|e| Reply::new(ErrorCode::Gpu, e.to_string()))
+        .map_err(|e| Reply::new(ErrorCode::Gpu, e.to_string()))?;
+    session.publish(ServerMessage::Edited {
+        by: viewer.clone(),
+        version: core.version,
+        edit: Box::new(edit),
+    });
+    Ok(())
+}
+
+/// Counts an edit: the next scene version, remembered with its arrival time unless an older
+/// edit is still waiting for its frame.
+fn bump_version(session: &SharedSession, core: &mut SessionCore, arrived: Instant) {
+    core.version += 1;
+    if let Ok(mut pending) = session.edit_clock.lock() {
+        pending.get_or_insert((core.version, arrived));
+    }
 }
 
 /// Swaps the session's volume and/or technique on the render thread.
 async fn rebuild(
     state: &Arc<AppState>,
+    session: &SharedSession,
     core: &mut SessionCore,
     volume: Option<Arc<voxlight_volumes::Volume>>,
     technique: String,
@@ -581,7 +720,7 @@ async fn rebuild(
     state
         .render
         .send(Command::Rebuild {
-            id: core.id,
+            id: session.render_id,
             volume,
             technique,
             scene: scene.clone(),
@@ -597,27 +736,73 @@ async fn rebuild(
     Ok(())
 }
 
+/// Sends with a deadline, so a viewer that stopped reading cannot hold its task forever.
+async fn send(sink: &mut Sink, message: Message) -> bool {
+    matches!(
+        tokio::time::timeout(SEND_TIMEOUT, sink.send(message)).await,
+        Ok(Ok(()))
+    )
+}
+
+/// Per-viewer frame pacing: what was sent and not yet acknowledged, and what was skipped.
+struct Pacing {
+    window: Option<u32>,
+    in_flight: VecDeque<(u64, Instant)>,
+    last_seq: u64,
+    skipped: u64,
+    adapt: QualityController,
+    sent_times: VecDeque<Instant>,
+    last_stats: Instant,
+}
+
+impl Pacing {
+    fn ready(&self) -> bool {
+        self.window
+            .is_none_or(|w| self.in_flight.len() < w as usize)
+    }
+
+    fn acknowledge(&mut self, upto: u64, metrics: &Metrics) {
+        let now = Instant::now();
+        while let Some(&(seq, sent)) = self.in_flight.front()
+            && seq <= upto
+        {
+            self.in_flight.pop_front();
+            self.adapt.observe(now.duration_since(sent));
+            metrics.frames_in_flight.fetch_sub(1, Ordering::Relaxed);
+        }
+    }
+}
+
 async fn write_loop(
     mut sink: Sink,
     mut outbox: mpsc::Receiver<ServerMessage>,
-    mut frames: watch::Receiver<Option<Arc<RenderedFrame>>>,
-    mut events: mpsc::Receiver<RenderEvent>,
-    jpeg_quality: Arc<AtomicU8>,
+    session: Arc<SharedSession>,
+    mut events: broadcast::Receiver<Arc<ServerMessage>>,
+    link: Arc<ViewerLink>,
+    window: Option<u32>,
     state: Arc<AppState>,
-    edit_clock: EditClock,
 ) {
     let (shutdown, metrics) = (&state.shutdown, &state.metrics);
-    let mut seq = 0u64;
-    let mut last_stats = Instant::now() - STATS_INTERVAL;
-    let mut sent_times: std::collections::VecDeque<Instant> = Default::default();
+    let mut frames = session.frames();
+    let mut acked = link.acked.subscribe();
+    let mut pacing = Pacing {
+        window,
+        in_flight: VecDeque::new(),
+        last_seq: 0,
+        skipped: 0,
+        adapt: QualityController::default(),
+        sent_times: VecDeque::new(),
+        last_stats: Instant::now() - STATS_INTERVAL,
+    };
     loop {
+        let ready = pacing.ready();
         let outgoing = tokio::select! {
             biased;
             _ = shutdown.cancelled() => {
                 let bye = ServerMessage::Bye { reason: "server shutting down".into() };
-                let _ = sink.send(text(&bye)).await;
+                let _ = send(&mut sink, text(&bye)).await;
                 let _ = sink.close().await;
-                return;
+                break;
             }
             message = outbox.recv() => match message {
                 Some(message) => {
@@ -628,104 +813,103 @@ async fn write_loop(
                 }
                 None => {
                     let _ = sink.close().await;
-                    return;
+                    break;
                 }
             },
-            Some(event) = events.recv() => {
-                metrics.error_sent(event.code);
-                text(&ServerMessage::Error { code: event.code, message: event.message })
-            }
-            changed = frames.changed() => {
+            event = events.recv() => match event {
+                Ok(message) => {
+                    if let ServerMessage::Error { code, .. } = *message {
+                        metrics.error_sent(code);
+                    }
+                    text(&message)
+                }
+                Err(RecvError::Lagged(_)) => {
+                    // Fell behind on edits: one message with the whole state replaces them.
+                    let core = session.core.lock().await;
+                    text(&ServerMessage::State {
+                        state: core.state(link.jpeg_quality.load(Ordering::Relaxed)),
+                        version: core.version,
+                    })
+                }
+                Err(RecvError::Closed) => break,
+            },
+            changed = acked.changed() => {
                 if changed.is_err() {
-                    return;
+                    break;
+                }
+                let upto = *acked.borrow_and_update();
+                pacing.acknowledge(upto, metrics);
+                continue;
+            }
+            changed = frames.changed(), if ready => {
+                if changed.is_err() {
+                    break;
                 }
                 let Some(rendered) = frames.borrow_and_update().clone() else { continue };
-                let quality = jpeg_quality.load(Ordering::Relaxed);
-                seq += 1;
-                let encoded = tokio::task::spawn_blocking(move || encode_frame(&rendered, seq, quality)).await;
-                let (bytes, stats, meta) = match encoded {
-                    Ok(Ok(done)) => done,
-                    Ok(Err(e)) => {
-                        tracing::error!(error = %e, "frame encoding failed");
-                        continue;
-                    }
+                if rendered.frame_number <= pacing.last_seq {
+                    continue;
+                }
+                let encoding = if rendered.frame.converged {
+                    Encoding::Png
+                } else {
+                    Encoding::Jpeg(pacing.adapt.quality(link.jpeg_quality.load(Ordering::Relaxed)))
+                };
+                let encoded = match session.encoded(&rendered, encoding, metrics).await {
+                    Ok(encoded) => encoded,
                     Err(e) => {
-                        tracing::error!(error = %e, "encoder task failed");
+                        tracing::error!(session = session.render_id, error = %e, "frame encoding failed");
                         continue;
                     }
                 };
-                let size = bytes.len();
-                if sink.send(Message::Binary(bytes.into())).await.is_err() {
-                    return;
+                let started = Instant::now();
+                if !send(&mut sink, Message::Binary(encoded.bytes.clone())).await {
+                    break;
                 }
                 let now = Instant::now();
-                metrics.frame_sent(meta.format, size, Duration::from_secs_f32(meta.encode_ms / 1000.0));
-                if let Ok(mut pending) = edit_clock.lock()
+                if pacing.last_seq > 0 {
+                    let skipped = rendered.frame_number - pacing.last_seq - 1;
+                    pacing.skipped += skipped;
+                    metrics.frames_skipped.fetch_add(skipped, Ordering::Relaxed);
+                }
+                pacing.last_seq = rendered.frame_number;
+                match pacing.window {
+                    Some(_) => {
+                        pacing.in_flight.push_back((rendered.frame_number, started));
+                        metrics.frames_in_flight.fetch_add(1, Ordering::Relaxed);
+                    }
+                    None => pacing.adapt.observe(now.duration_since(started)),
+                }
+                metrics.frame_sent(encoded.meta.format, encoded.bytes.len());
+                session.frames_sent.fetch_add(1, Ordering::Relaxed);
+                if let Ok(mut pending) = session.edit_clock.lock()
                     && let Some((version, arrived)) = *pending
-                    && meta.scene_version >= version
+                    && encoded.meta.scene_version >= version
                 {
                     metrics.input_to_frame_seconds.observe(now.duration_since(arrived));
                     *pending = None;
                 }
-                sent_times.push_back(now);
-                while sent_times.front().is_some_and(|t| now.duration_since(*t) > Duration::from_secs(1)) {
-                    sent_times.pop_front();
+                pacing.sent_times.push_back(now);
+                while pacing.sent_times.front().is_some_and(|t| now.duration_since(*t) > Duration::from_secs(1)) {
+                    pacing.sent_times.pop_front();
                 }
-                if now.duration_since(last_stats) < STATS_INTERVAL && !stats.converged {
+                if now.duration_since(pacing.last_stats) < STATS_INTERVAL && !encoded.meta.converged {
                     continue;
                 }
-                last_stats = now;
-                text(&ServerMessage::Stats(Stats { fps: sent_times.len() as f32, ..stats }))
+                pacing.last_stats = now;
+                text(&ServerMessage::Stats(Stats {
+                    fps: pacing.sent_times.len() as f32,
+                    viewers: session.viewers().len() as u32,
+                    jpeg_quality: pacing.adapt.quality(link.jpeg_quality.load(Ordering::Relaxed)),
+                    frames_skipped: pacing.skipped,
+                    ..encoded.stats.clone()
+                }))
             }
         };
-        if sink.send(outgoing).await.is_err() {
-            return;
+        if !send(&mut sink, outgoing).await {
+            break;
         }
     }
-}
-
-/// Encodes a rendered frame as a binary frame message: PNG once converged, JPEG before.
-fn encode_frame(
-    rendered: &RenderedFrame,
-    seq: u64,
-    quality: u8,
-) -> Result<(Vec<u8>, Stats, FrameMeta), crate::encode::EncodeError> {
-    let started = Instant::now();
-    let frame = &rendered.frame;
-    let (image, format) = if frame.converged {
-        (
-            crate::encode::png(&frame.rgba, frame.width, frame.height)?,
-            FrameFormat::Png,
-        )
-    } else {
-        (
-            crate::encode::jpeg(&frame.rgba, frame.width, frame.height, quality)?,
-            FrameFormat::Jpeg,
-        )
-    };
-    let meta = FrameMeta {
-        seq,
-        format,
-        width: frame.width,
-        height: frame.height,
-        technique: rendered.technique.to_owned(),
-        iteration: frame.iteration,
-        target_iterations: frame.target_iterations,
-        converged: frame.converged,
-        lossless: format == FrameFormat::Png,
-        quality: (format == FrameFormat::Jpeg).then_some(quality),
-        scene_version: rendered.scene_version,
-        render_ms: rendered.render_ms,
-        encode_ms: started.elapsed().as_secs_f32() * 1000.0,
-    };
-    let stats = Stats {
-        technique: rendered.technique.to_owned(),
-        iteration: frame.iteration,
-        target_iterations: frame.target_iterations,
-        converged: frame.converged,
-        gpu_ms: rendered.gpu_ms,
-        memory_bytes: rendered.stats.memory_bytes,
-        fps: 0.0,
-    };
-    Ok((join_frame(&meta, &image), stats, meta))
+    metrics
+        .frames_in_flight
+        .fetch_sub(pacing.in_flight.len() as i64, Ordering::Relaxed);
 }

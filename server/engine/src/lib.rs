@@ -19,7 +19,7 @@ pub mod volume;
 use std::sync::Arc;
 
 pub use gpu::Gpu;
-pub use renderer::{Frame, Renderer};
+pub use renderer::{Frame, Renderer, session_bytes};
 pub use scene::{Change, Scene};
 pub use technique::{StepReport, Technique, TechniqueStats};
 pub use volume::GpuVolume;
@@ -43,6 +43,14 @@ pub enum EngineError {
         height: u32,
         needed: u64,
         max_pixels: u64,
+    },
+    #[error(
+        "the server's GPU memory budget is used up: this needs {needed} bytes, {in_use} of {budget} are in use by other sessions; try a smaller viewport or later"
+    )]
+    MemoryBudget {
+        needed: u64,
+        in_use: u64,
+        budget: u64,
     },
     #[error("unknown technique `{0}`")]
     UnknownTechnique(String),
