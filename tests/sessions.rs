@@ -359,6 +359,7 @@ async fn loadgen_measures_latency_and_frame_rates() {
         token: None,
         edit_rate: 5.0,
         tf_interval: Duration::from_secs(1),
+        background_sessions: 1,
     })
     .await
     .unwrap();
@@ -369,6 +370,10 @@ async fn loadgen_measures_latency_and_frame_rates() {
     assert!(report.input_to_frame_ms.count >= 2, "{report:?}");
     assert!(report.input_to_frame_ms.p50 > 0.0);
     assert!(report.bytes_per_s > 0.0);
+    assert!(
+        report.background_fps > 0.0,
+        "the background session starved"
+    );
     // Against a server that refuses it, errors are reported, not hidden.
     let refusing = TestServer::start_with(ServerConfig {
         default_dataset: Some("phantom:sphere".into()),
@@ -394,6 +399,7 @@ async fn loadgen_measures_latency_and_frame_rates() {
         token: None,
         edit_rate: 5.0,
         tf_interval: Duration::from_secs(1),
+        background_sessions: 0,
     })
     .await
     .unwrap();

@@ -40,6 +40,9 @@ pub struct LoadConfig {
     pub edit_rate: f64,
     /// Seconds between TF edits.
     pub tf_interval: Duration,
+    /// Extra sessions nobody edits that keep refining (a very high iteration target): the
+    /// GPU scheduler should keep them from slowing the edited ones down.
+    pub background_sessions: u32,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -85,6 +88,9 @@ pub struct LoadReport {
     pub sessions_at_10fps: u32,
     pub input_to_frame_ms: Percentiles,
     pub bytes_per_s: f64,
+    pub background_sessions: u32,
+    /// Mean frames per second of the background sessions.
+    pub background_fps: f64,
     pub errors: u64,
     /// Error messages and failures by code.
     pub error_codes: BTreeMap<String, u64>,
@@ -116,6 +122,9 @@ pub fn validate(config: &LoadConfig) -> anyhow::Result<()> {
     if !(1..=MAX_SESSIONS).contains(&config.sessions) {
         bail!("--sessions must be in 1..={MAX_SESSIONS}");
     }
+    if config.background_sessions > MAX_SESSIONS {
+        bail!("--background-sessions must be at most {MAX_SESSIONS}");
+    }
     if !(1..=MAX_VIEWERS_PER_SESSION as u32).contains(&config.viewers) {
         bail!("--viewers must be in 1..={MAX_VIEWERS_PER_SESSION}");
     }
@@ -141,11 +150,22 @@ pub async fn run(config: LoadConfig) -> anyhow::Result<LoadReport> {
         let config = config.clone();
         sessions.spawn(async move { run_session(&config, index, deadline).await });
     }
+    let mut background = tokio::task::JoinSet::new();
+    for _ in 0..config.background_sessions {
+        let config = config.clone();
+        background.spawn(async move { run_background(&config, deadline).await });
+    }
     let mut per_session: Vec<Vec<ViewerResult>> = Vec::new();
     while let Some(result) = sessions.join_next().await {
         per_session.push(result.context("a session task panicked")?);
     }
+    let mut background_results = Vec::new();
+    while let Some(result) = background.join_next().await {
+        background_results.push(result.context("a background task panicked")?);
+    }
     let end = Instant::now().min(deadline);
+    let background_fps = background_results.iter().map(|v| v.fps(end)).sum::<f64>()
+        / background_results.len().max(1) as f64;
     let viewers: Vec<&ViewerResult> = per_session.iter().flatten().collect();
     let fps: Vec<f64> = viewers.iter().map(|v| v.fps(end)).collect();
     let mut error_codes = BTreeMap::new();
@@ -174,6 +194,8 @@ pub async fn run(config: LoadConfig) -> anyhow::Result<LoadReport> {
                 .collect(),
         ),
         bytes_per_s: viewers.iter().map(|v| v.bytes).sum::<u64>() as f64 / elapsed,
+        background_sessions: config.background_sessions,
+        background_fps,
         errors: error_codes.values().sum(),
         error_codes,
     })
@@ -291,6 +313,22 @@ async fn run_session(config: &LoadConfig, index: u32, deadline: Instant) -> Vec<
         results.push(result.unwrap_or_else(|e| failed(format!("task: {e}"))));
     }
     results
+}
+
+/// A session that nobody edits and that keeps refining until the deadline.
+async fn run_background(config: &LoadConfig, deadline: Instant) -> ViewerResult {
+    let mut socket = match connect(config).await {
+        Ok(socket) => socket,
+        Err(e) => return failed(format!("connect: {e:#}")),
+    };
+    if let Err(e) = hello(&mut socket, config, "loadgen-background".into(), None).await {
+        return failed(format!("hello: {e:#}"));
+    }
+    let quality = r#"{"type":"quality","iterations":65536}"#;
+    if socket.send(Message::Text(quality.into())).await.is_err() {
+        return failed("send".into());
+    }
+    drive(socket, None, deadline).await
 }
 
 fn failed(error: String) -> ViewerResult {
@@ -444,6 +482,7 @@ mod tests {
             token: None,
             edit_rate: 10.0,
             tf_interval: Duration::from_secs(2),
+            background_sessions: 0,
         };
         assert!(validate(&config).is_ok());
         config.viewers = 0;

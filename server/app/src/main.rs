@@ -86,6 +86,9 @@ enum Command {
         /// Seconds between TF edits.
         #[arg(long, default_value_t = 2.0)]
         tf_interval: f64,
+        /// Extra sessions that nobody edits and that keep refining (scheduler check).
+        #[arg(long, default_value_t = 0)]
+        background_sessions: u32,
         /// Print one JSON object on the last line.
         #[arg(long)]
         json: bool,
@@ -185,6 +188,7 @@ fn run() -> anyhow::Result<()> {
             token,
             edit_rate,
             tf_interval,
+            background_sessions,
             json,
         } => {
             let config = loadgen::LoadConfig {
@@ -200,6 +204,7 @@ fn run() -> anyhow::Result<()> {
                 edit_rate,
                 tf_interval: Duration::try_from_secs_f64(tf_interval)
                     .context("--tf-interval must be a positive number of seconds")?,
+                background_sessions,
             };
             loadgen::validate(&config)?;
             let runtime = tokio::runtime::Builder::new_multi_thread()
