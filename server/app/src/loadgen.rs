@@ -164,8 +164,12 @@ pub async fn run(config: LoadConfig) -> anyhow::Result<LoadReport> {
         background_results.push(result.context("a background task panicked")?);
     }
     let end = Instant::now().min(deadline);
-    let background_fps = background_results.iter().map(|v| v.fps(end)).sum::<f64>()
-        / background_results.len().max(1) as f64;
+    let background_fps = if background_results.is_empty() {
+        0.0
+    } else {
+        background_results.iter().map(|v| v.fps(end)).sum::<f64>()
+            / background_results.len() as f64
+    };
     let viewers: Vec<&ViewerResult> = per_session.iter().flatten().collect();
     let fps: Vec<f64> = viewers.iter().map(|v| v.fps(end)).collect();
     let mut error_codes = BTreeMap::new();
