@@ -167,8 +167,7 @@ pub async fn run(config: LoadConfig) -> anyhow::Result<LoadReport> {
     let background_fps = if background_results.is_empty() {
         0.0
     } else {
-        background_results.iter().map(|v| v.fps(end)).sum::<f64>()
-            / background_results.len() as f64
+        background_results.iter().map(|v| v.fps(end)).sum::<f64>() / background_results.len() as f64
     };
     let viewers: Vec<&ViewerResult> = per_session.iter().flatten().collect();
     let fps: Vec<f64> = viewers.iter().map(|v| v.fps(end)).collect();

@@ -131,6 +131,9 @@ struct Session {
     frame_number: u64,
     viewers: Arc<AtomicUsize>,
     last_edit: Instant,
+    /// No frame shows the latest edit yet: the next slice renders one iteration and sends it
+    /// at once, so input-to-frame latency is one iteration, not one slice.
+    fresh_edit: bool,
     /// A frame of the current state is still owed to viewers.
     dirty: bool,
     failed: bool,
@@ -331,6 +334,7 @@ impl RenderThread {
                                 frame_number: 0,
                                 viewers,
                                 last_edit: Instant::now(),
+                                fresh_edit: true,
                                 dirty: true,
                                 failed: false,
                             },
@@ -364,6 +368,7 @@ impl RenderThread {
                 session.version = version;
                 session.dirty = true;
                 session.last_edit = Instant::now();
+                session.fresh_edit = true;
                 for change in &changes {
                     if let Err(e) = session.renderer.apply(&self.engine, &session.scene, change) {
                         session.failed = true;
@@ -402,6 +407,7 @@ impl RenderThread {
                         session.scene = scene;
                         session.version = version;
                         session.last_edit = Instant::now();
+                        session.fresh_edit = true;
                         session.dirty = true;
                         session.failed = false;
                         self.volumes.retain(|_, weak| weak.strong_count() > 0);
@@ -433,9 +439,15 @@ impl RenderThread {
             return;
         };
         let started = Instant::now();
+        let budget = if session.fresh_edit {
+            Duration::ZERO
+        } else {
+            TIME_SLICE
+        };
+        session.fresh_edit = false;
         let result = session
             .renderer
-            .step(&engine, &session.scene, TIME_SLICE)
+            .step(&engine, &session.scene, budget)
             .and_then(|report| Ok((report, session.renderer.frame(&engine, &session.scene)?)));
         match result {
             Ok((report, frame)) => {

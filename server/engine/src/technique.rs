@@ -31,7 +31,8 @@ pub trait Technique: Send {
     /// Reacts to an edit; `scene` already holds the new state.
     fn apply(&mut self, engine: &Engine, scene: &Scene, change: &Change)
     -> Result<(), EngineError>;
-    /// Progressive work for about `budget` (at least one iteration unless converged).
+    /// Progressive work for about `budget` (at least one iteration unless converged; a zero
+    /// budget means exactly one, for the first frame after an edit).
     fn step(
         &mut self,
         engine: &Engine,

@@ -188,7 +188,8 @@ impl Technique for Progressive {
         let mut done = 0;
         let mut gpu_time = Duration::ZERO;
         while self.iteration < target {
-            let batch = self.batch.min(target - self.iteration);
+            // A zero budget asks for one iteration now (the first frame after an edit).
+            let batch = if budget.is_zero() { 1 } else { self.batch }.min(target - self.iteration);
             let batch_start = Instant::now();
             for i in 0..batch {
                 let uniforms = SceneUniforms::new(scene, &self.volume, self.iteration)
