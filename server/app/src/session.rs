@@ -14,6 +14,7 @@ use futures_util::stream::{SplitSink, SplitStream};
 use futures_util::{SinkExt, StreamExt};
 use tokio::sync::broadcast::error::RecvError;
 use tokio::sync::{broadcast, mpsc, oneshot, watch};
+use tokio_util::sync::CancellationToken;
 use voxlight_engine::camera::CameraBasis;
 use voxlight_engine::scene::{validate_lights, validate_params, validate_viewport};
 use voxlight_engine::{Change, Scene};
@@ -109,6 +110,10 @@ struct ViewerLink {
     jpeg_quality: AtomicU8,
     /// Highest frame `seq` acknowledged.
     acked: watch::Sender<u64>,
+    /// Frames in flight before acknowledgements (None: the client does not acknowledge).
+    window: Option<u32>,
+    /// Ends the reader when the writer gives up on the viewer (or the server shuts down).
+    connection: CancellationToken,
 }
 
 /// Serves one WebSocket connection until it closes or the server shuts down.
@@ -145,6 +150,8 @@ pub async fn handle_socket(socket: WebSocket, state: Arc<AppState>) {
     let link = Arc::new(ViewerLink {
         jpeg_quality: AtomicU8::new(DEFAULT_JPEG_QUALITY),
         acked: watch::Sender::new(0),
+        window,
+        connection: state.shutdown.child_token(),
     });
     let (outbox, outbox_rx) = mpsc::channel(OUTBOX);
     let _ = outbox.send(welcome).await;
@@ -157,7 +164,6 @@ pub async fn handle_socket(socket: WebSocket, state: Arc<AppState>) {
         session.clone(),
         events,
         link.clone(),
-        window,
         state.clone(),
     ));
     read_loop(&state, &session, &info, stream, outbox, &link).await;
@@ -504,7 +510,7 @@ async fn read_loop(
     loop {
         let message = tokio::select! {
             message = stream.next() => message,
-            _ = state.shutdown.cancelled() => return,
+            _ = link.connection.cancelled() => return,
         };
         let message = match message {
             Some(Ok(Message::Close(_))) | None => return,
@@ -646,8 +652,16 @@ async fn handle_message(
         }
         ClientMessage::Technique { name } => {
             check_technique(state, &name)?;
-            bump_version(session, &mut core, arrived);
-            rebuild(state, session, &mut core, None, name.clone(), scene).await?;
+            rebuild(
+                state,
+                session,
+                &mut core,
+                None,
+                name.clone(),
+                scene,
+                arrived,
+            )
+            .await?;
             core.technique = name.clone();
             session.publish(ServerMessage::Edited {
                 by: viewer.clone(),
@@ -661,9 +675,9 @@ async fn handle_message(
             // A new dataset is a new scene: its own default TF and lights.
             scene.tf = crate::datasets::default_tf(&volume);
             scene.lights = crate::datasets::default_lights_for(&volume);
-            bump_version(session, &mut core, arrived);
             let technique = core.technique.clone();
-            rebuild(state, session, &mut core, Some(volume), technique, scene).await?;
+            let volume = Some(volume);
+            rebuild(state, session, &mut core, volume, technique, scene, arrived).await?;
             core.dataset = name.clone();
             let dataset = state
                 .catalog
@@ -707,7 +721,8 @@ fn bump_version(session: &SharedSession, core: &mut SessionCore, arrived: Instan
     }
 }
 
-/// Swaps the session's volume and/or technique on the render thread.
+/// Swaps the session's volume and/or technique on the render thread; the version advances
+/// only when that worked.
 async fn rebuild(
     state: &Arc<AppState>,
     session: &SharedSession,
@@ -715,6 +730,7 @@ async fn rebuild(
     volume: Option<Arc<voxlight_volumes::Volume>>,
     technique: String,
     scene: Scene,
+    arrived: Instant,
 ) -> Result<(), Reply> {
     let (reply, done) = oneshot::channel();
     state
@@ -724,7 +740,7 @@ async fn rebuild(
             volume,
             technique,
             scene: scene.clone(),
-            version: core.version,
+            version: core.version + 1,
             reply,
         })
         .await
@@ -733,6 +749,7 @@ async fn rebuild(
         .map_err(|_| Reply::new(ErrorCode::Internal, "render thread dropped the request"))?
         .map_err(|e| Reply::new(crate::render_service::error_code(&e), e.to_string()))?;
     core.scene = scene;
+    bump_version(session, core, arrived);
     Ok(())
 }
 
@@ -779,14 +796,14 @@ async fn write_loop(
     session: Arc<SharedSession>,
     mut events: broadcast::Receiver<Arc<ServerMessage>>,
     link: Arc<ViewerLink>,
-    window: Option<u32>,
     state: Arc<AppState>,
 ) {
+    let _end_reader = link.connection.clone().drop_guard();
     let (shutdown, metrics) = (&state.shutdown, &state.metrics);
     let mut frames = session.frames();
     let mut acked = link.acked.subscribe();
     let mut pacing = Pacing {
-        window,
+        window: link.window,
         in_flight: VecDeque::new(),
         last_seq: 0,
         skipped: 0,
