@@ -25,6 +25,7 @@ done
 (cd tests/web && npm ci --no-audit --no-fund --loglevel=error)
 status=0
 VOXLIGHT_SCREENSHOTS="${VOXLIGHT_SCREENSHOTS:-target/screenshots}" node tests/web/viewer_test.mjs "http://127.0.0.1:$port/" || status=$?
+[ $status -ne 0 ] || VOXLIGHT_SCREENSHOTS="${VOXLIGHT_SCREENSHOTS:-target/screenshots}" node tests/web/shared_test.mjs "http://127.0.0.1:$port/" || status=$?
 if [ $status -ne 0 ]; then
   echo "---- server log ----"; tail -50 "$log"
 fi

@@ -70,6 +70,7 @@ async fn two_viewers_share_one_rendering_and_see_each_others_edits() {
         viewer,
         viewers,
         state,
+        version,
         ..
     } = joined
     else {
@@ -80,6 +81,7 @@ async fn two_viewers_share_one_rendering_and_see_each_others_edits() {
     assert_eq!(viewers.len(), 2);
     // The joiner gets the session's state, not its own hello's.
     assert_eq!((state.viewport.width, state.viewport.height), (48, 48));
+    assert_eq!(version, 1, "Ada's iterations edit is version 1");
     let list = ada
         .text_where(|m| matches!(m, ServerMessage::Viewers { viewers } if viewers.len() == 2))
         .await
@@ -132,6 +134,16 @@ async fn two_viewers_share_one_rendering_and_see_each_others_edits() {
         unreachable!()
     };
     assert!(matches!(*edit, ClientMessage::Camera(c) if c.eye == [1.5, -1.8, 0.3]));
+
+    // Renaming reaches everyone through the viewer list.
+    bob.send_json(json!({"type": "name", "name": "Robert"}))
+        .await
+        .unwrap();
+    ada.text_where(|m| {
+        matches!(m, ServerMessage::Viewers { viewers } if viewers.iter().any(|v| v.name == "Robert"))
+    })
+    .await
+    .unwrap();
     ada.close().await;
     bob.close().await;
     server.stop().await.unwrap();

@@ -1,6 +1,10 @@
 // voxlight browser client: shows the server's progressively refined frames and sends camera,
 // transfer-function, light, technique and parameter edits. Plain ES modules, no dependencies,
 // 2D canvas only (works with GPU and WebGL disabled). Protocol: docs/protocol.md.
+//
+// Sessions are shared: the page URL carries `?session=ID` (the share link), every viewer may
+// edit (last writer wins, the server tells everyone who edited with `edited`), and a dropped
+// connection rejoins the same session.
 
 import { Connection, PROTOCOL_VERSION, wsUrlFor } from './connection.js';
 import * as Cam from './camera.js';
@@ -31,6 +35,44 @@ const MAX_VIEWPORT_EDGE = 4096;
 /** Streamed images are capped to about this many pixels (1024²). */
 const MAX_VIEWPORT_PIXELS = 1024 * 1024;
 const MIN_VIEWPORT_EDGE = 64;
+/** Longest display name (protocol MAX_NAME_CHARS). */
+const MAX_NAME_CHARS = 64;
+/** Frames the server may send before we acknowledge them: one on screen, one decoding. */
+const MAX_IN_FLIGHT = 2;
+/**
+ * How long an own edit counts as on its way to the server. Its echo normally comes back within
+ * a round trip (a technique switch waits for a rebuild); this only bounds how long a lost echo
+ * can hide others' edits of the same kind.
+ */
+const OWN_ECHO_TIMEOUT_MS = 10000;
+/** Message types that edit the shared session; the server echoes each one as `edited`. */
+const EDIT_TYPES = new Set(['camera', 'tf', 'lights', 'technique', 'params', 'quality']);
+
+// Display name: chosen once per browser, editable in the panel, shown to the other viewers.
+const NAME_KEY = 'voxlight.name';
+/** @param {string} name */
+const cleanName = (name) => String(name || '').replace(/[\u0000-\u001f\u007f]/g, '').trim().slice(0, MAX_NAME_CHARS);
+function loadName() {
+  let name = '';
+  try {
+    name = cleanName(localStorage.getItem(NAME_KEY) || '');
+  } catch {
+    /* storage disabled: a name for this page only */
+  }
+  if (!name) {
+    name = `viewer-${1000 + Math.floor(Math.random() * 9000)}`;
+    saveName(name);
+  }
+  return name;
+}
+/** @param {string} name */
+function saveName(name) {
+  try {
+    localStorage.setItem(NAME_KEY, name);
+  } catch {
+    /* storage disabled */
+  }
+}
 
 // ---- state ---------------------------------------------------------------------------------
 
@@ -39,6 +81,26 @@ const vx = {
   connected: false,
   session: /** @type {string|null} */ (null),
   welcome: /** @type {any} */ (null),
+  /** This connection as the other viewers see it ({id, name}). */
+  viewer: /** @type {{id: number, name: string}|null} */ (null),
+  /** Everyone viewing the session, this viewer included. */
+  viewers: /** @type {{id: number, name: string}[]} */ ([]),
+  /** Did the last welcome join an existing session? */
+  joined: false,
+  /** Our display name (sent in hello). */
+  name: loadName(),
+  /** The session state as the server has it: welcome/state/dataset_loaded plus every edit. */
+  state: /** @type {any} */ (null),
+  /** Newest scene version announced by `edited` or `state`. */
+  version: 0,
+  /** Who last changed the session, when it was someone else: {id, name, kind, at}. */
+  lastEditBy: /** @type {any} */ (null),
+  /** Recent `edited` messages: {by, version, kind, own, applied}. */
+  editLog: /** @type {any[]} */ ([]),
+  /** Newest frame seq acknowledged. */
+  acked: -1,
+  /** The link that opens this session (no token in it). */
+  shareLink: () => shareLink(),
   dataset: /** @type {any} */ (null),
   techniques: /** @type {{name: string, description: string}[]} */ ([]),
   framesReceived: 0,
@@ -53,6 +115,8 @@ const vx = {
   errors: /** @type {{code: string, message: string}[]} */ ([]),
   camera: /** @type {Camera} */ (Cam.cloneCamera(Cam.DEFAULT_CAMERA)),
   viewport: { width: 512, height: 512 },
+  /** The TF editor's points (what this page shows). */
+  tfPoints: () => tfEditor.points,
   /** Small grayscale thumbnail of the displayed picture, for tests: {w, h, data: number[]}. */
   sample: (/** @type {number} */ n) => sampleCanvas(n || 32),
   connection: /** @type {Connection|null} */ (null),
@@ -69,8 +133,6 @@ const local = {
   lights: [],
   jpeg_quality: 80,
   iterations: 64,
-  /** Did the user change anything (so a reconnect restores it)? */
-  edited: false,
   /** The home camera for double-click reset. */
   home: Cam.cloneCamera(Cam.DEFAULT_CAMERA),
 };
@@ -83,14 +145,25 @@ const tfEditor = new TfEditor($('tf'), { colorInput: $('tf-color'), readout: $('
 
 // ---- connection ----------------------------------------------------------------------------
 
+/**
+ * The session the next hello joins: the share link's at first, then the one we were welcomed
+ * into (so a dropped connection resumes it); null starts a new session.
+ */
+let joinSession = params.get('session') || null;
+/** The last hello named a session that no longer exists: the next welcome is a fresh one. */
+let sessionLost = false;
+/** Why the server refused the last hello (shown while reconnecting); '' once welcomed. */
+let helloError = '';
+/** Viewer ids this page has had (its earlier connections), so their leaving is not announced. */
+const ownIds = new Set();
+
 const conn = new Connection(params.get('ws') || wsUrlFor(location), () => {
   /** @type {any} */
   vx.viewport = computeViewport();
-  const hello = { type: 'hello', protocol: PROTOCOL_VERSION, viewport: vx.viewport };
+  const hello = { type: 'hello', protocol: PROTOCOL_VERSION, viewport: vx.viewport, name: vx.name, max_in_flight: MAX_IN_FLIGHT };
   if (local.dataset) hello.dataset = local.dataset;
   if (local.technique) hello.technique = local.technique;
-  const session = params.get('session');
-  if (session) hello.session = session;
+  if (joinSession) hello.session = joinSession;
   return hello;
 }, () => (accessToken() ? ['voxlight', `voxlight.token.${accessToken()}`] : ['voxlight']));
 vx.connection = conn;
@@ -102,6 +175,8 @@ function send(type, body = {}) {
   if (ok) {
     vx.sent[type] = (vx.sent[type] || 0) + 1;
     vx.lastSent[type] = msg;
+    // A quality message without iterations changes only this viewer: no echo comes.
+    if (EDIT_TYPES.has(type) && !(type === 'quality' && msg.iterations == null)) ownEditSent(type);
   }
   return ok;
 }
@@ -114,31 +189,42 @@ conn.addEventListener('connecting', (/** @type {any} */ e) => {
 
 conn.addEventListener('welcome', (/** @type {any} */ e) => {
   const w = e.detail.msg;
-  const reconnect = !!vx.welcome;
+  const hadSession = !!vx.welcome; // this page was in a session before: a reconnect
+  const lost = sessionLost;
+  sessionLost = false;
+  helloError = '';
   vx.welcome = w;
   vx.connected = true;
   vx.session = w.session;
+  joinSession = w.session;
+  vx.joined = !!w.joined;
+  vx.version = 0; // welcome carries no version; a new session counts from 0 again
+  vx.viewer = w.viewer && Number.isFinite(w.viewer.id) ? { id: w.viewer.id, name: String(w.viewer.name || '') } : null;
+  if (vx.viewer) ownIds.add(vx.viewer.id);
   vx.techniques = Array.isArray(w.techniques) ? w.techniques : [];
   resetFrameTracking();
+  resetOwnEdits();
   hideOverlay();
   setConnDot('on');
   $('st-adapter').textContent = `${w.adapter || '?'} · server ${w.server_version || '?'} · session ${String(w.session || '').slice(0, 8)}`;
   fillTechniques(vx.techniques);
-  const restore = reconnect && local.edited && w.dataset && w.dataset.name === local.dataset;
+  setViewers(w.viewers, false);
+  setSessionInUrl(w.session);
+  // A fresh session although this page had one: ours expired while we were away. Put back what
+  // this page showed (its own and others' edits alike).
+  const restore = !w.joined && hadSession && w.dataset && w.dataset.name === local.dataset;
   applyDatasetInfo(w.dataset);
+  vx.state = w.state ? structuredClone(w.state) : null;
   if (restore) {
-    // New session after a dropped connection: put back what this user had.
-    toast('info', 'reconnected', 'new session; your view and settings were restored');
+    toast('info', 'reconnected', 'the shared session had ended; started a new one with your view and settings');
     pushAll();
   } else {
+    // A joined session's state wins over ours (and over the page URL's).
     applyState(w.state || {});
-    // ?iterations=N in the page URL: a convergence target for this viewer (demos, tests).
-    const wanted = Number(params.get('iterations'));
-    if (Number.isInteger(wanted) && wanted >= 1 && wanted !== local.iterations) {
-      local.iterations = wanted;
-      sIters.set(wanted);
-      send('quality', { jpeg_quality: local.jpeg_quality, iterations: wanted });
-    }
+    if (!w.joined) applyUrlIterations();
+    if (w.joined && hadSession) toast('info', 'reconnected', 'back in the shared session');
+    else if (w.joined) toast('info', 'joined', `shared session with ${namesOfOthers() || 'nobody else (yet)'}`);
+    else if (lost) toast('info', 'new session', 'the shared session has ended; this is a new one');
   }
   // The session's viewport (a joined session may have another); send ours if it differs.
   const svp = w.state && w.state.viewport;
@@ -146,14 +232,41 @@ conn.addEventListener('welcome', (/** @type {any} */ e) => {
   scheduleViewport(0);
 });
 
+/** ?iterations=N in the page URL: a convergence target for a new session (demos, tests). */
+function applyUrlIterations() {
+  const wanted = Number(params.get('iterations'));
+  if (Number.isInteger(wanted) && wanted >= 1 && wanted !== local.iterations) {
+    local.iterations = wanted;
+    sIters.set(wanted);
+    send('quality', { jpeg_quality: local.jpeg_quality, iterations: wanted });
+  }
+}
+
 conn.addEventListener('message', (/** @type {any} */ e) => {
   const m = e.detail.msg;
   switch (m.type) {
-    case 'dataset_loaded':
+    case 'dataset_loaded': {
       $('dataset').disabled = false;
       applyDatasetInfo(m.dataset);
       applyState(m.state || {});
-      toast('info', 'dataset', `${m.dataset?.name || 'dataset'} loaded`);
+      if (m.state) vx.state = structuredClone(m.state);
+      const name = m.dataset?.name || 'dataset';
+      if (isOthers(m.by)) {
+        noteOthersEdit(m.by, 'dataset');
+        toast('info', 'dataset', `${m.by.name} opened ${name}`);
+      } else {
+        toast('info', 'dataset', `${name} loaded`);
+      }
+      break;
+    }
+    case 'edited':
+      onEdited(m);
+      break;
+    case 'state':
+      onStateResync(m);
+      break;
+    case 'viewers':
+      setViewers(m.viewers, true);
       break;
     case 'stats':
       vx.lastStats = m;
@@ -164,6 +277,23 @@ conn.addEventListener('message', (/** @type {any} */ e) => {
       vx.errors.push(err);
       if (vx.errors.length > 50) vx.errors.shift();
       if (err.code === 'unknown_dataset' || err.code === 'load_failed') $('dataset').disabled = false;
+      if (!conn.ready) helloError = err.message || err.code;
+      if (!conn.ready && err.code === 'unknown_session') {
+        // Our session expired (grace period over) or the link is stale: start a new one at
+        // once; the server closes this socket.
+        sessionLost = true;
+        joinSession = null;
+        conn.reconnectSoon(0);
+        toast('info', 'session ended', 'starting a new session');
+        break;
+      }
+      if (!conn.ready && err.code === 'session_full') {
+        // Keep trying with backoff: someone may leave.
+        toast('error', err.code, `${err.message}; retrying`);
+        break;
+      }
+      // The failed edit will not be echoed: stop waiting for our own echoes.
+      if (conn.ready) resetOwnEdits();
       toast('error', err.code, err.message);
       break;
     }
@@ -183,7 +313,7 @@ conn.addEventListener('close', (/** @type {any} */ e) => {
     showOverlay('Disconnected', '', true);
     return;
   }
-  const why = d.reason ? `“${d.reason}”` : d.everConnected ? `connection lost (code ${d.code})` : 'server unreachable';
+  const why = helloError || (d.reason ? `“${d.reason}”` : d.everConnected ? `connection lost (code ${d.code})` : 'server unreachable');
   showOverlay('Connection lost', `${why} — reconnecting in ${(d.retryInMs / 1000).toFixed(1)} s`, true);
   $('badge').className = 'badge badge-wait';
   $('badge').textContent = 'offline';
@@ -193,46 +323,340 @@ conn.addEventListener('frame', (/** @type {any} */ e) => onFrame(e.detail));
 
 $('overlay-retry').addEventListener('click', () => conn.retryNow());
 
+// ---- shared session --------------------------------------------------------------------------
+//
+// Every viewer may edit; the server applies edits in arrival order and sends each one to every
+// viewer as `edited`, the editor included. We apply others' edits to the UI through the setters
+// (which never send), and ignore our own echoes. One subtlety: an `edited` from someone else
+// that arrives while an own edit of the same kind is still on its way (sent, echo not yet back,
+// or queued for the next animation frame) was applied BEFORE ours, so ours overwrites it on the
+// server; applying it here would leave our UI showing a state the session no longer has.
+
+/** Own edits sent and not yet echoed, per message type: {n, at}. */
+const ownInFlight = /** @type {Map<string, {n: number, at: number}>} */ (new Map());
+
+/** @param {string} type */
+function ownEditSent(type) {
+  const e = ownInFlight.get(type) || { n: 0, at: 0 };
+  e.n++;
+  e.at = performance.now();
+  ownInFlight.set(type, e);
+}
+
+function resetOwnEdits() {
+  ownInFlight.clear();
+}
+
+/** Is local input of this kind waiting for the next animation frame to be sent? */
+function queuedLocally(/** @type {string} */ type) {
+  return type === 'quality' ? qualityDirty.has('iterations') : outbox.has(type);
+}
+
+/** Will an own edit of this kind reach the server after one that arrives now? */
+function ownEditPending(/** @type {string} */ type) {
+  if (queuedLocally(type)) return true;
+  const e = ownInFlight.get(type);
+  return !!e && e.n > 0 && performance.now() - e.at < OWN_ECHO_TIMEOUT_MS;
+}
+
+/** @param {any} by ViewerInfo */
+function isOthers(by) {
+  return !!by && Number.isFinite(by.id) && (!vx.viewer || by.id !== vx.viewer.id);
+}
+
+/** @param {any} m {by, version, edit} */
+function onEdited(m) {
+  const edit = m.edit;
+  if (!edit || typeof edit.type !== 'string') return;
+  const version = Number(m.version);
+  if (Number.isFinite(version)) vx.version = Math.max(vx.version, version);
+  mirrorEdit(edit);
+  const own = !isOthers(m.by);
+  let applied = false;
+  if (own) {
+    const e = ownInFlight.get(edit.type);
+    if (e && e.n > 0) e.n--;
+    if (pendingEdit && pendingEdit.target == null && pendingEdit.kind === edit.type && Number.isFinite(version)) pendingEdit.target = version;
+  } else if (!ownEditPending(edit.type)) {
+    applied = applyEdit(edit);
+    if (applied) noteOthersEdit(m.by, edit.type);
+  }
+  vx.editLog.push({ by: m.by, version, kind: edit.type, own, applied });
+  if (vx.editLog.length > 100) vx.editLog.shift();
+}
+
+/**
+ * Shows someone else's edit in the UI. Returns whether it was understood.
+ * @param {any} edit a client message as the server applied it
+ */
+function applyEdit(edit) {
+  switch (edit.type) {
+    case 'camera':
+      return setCamera(edit);
+    case 'tf':
+      return setTf(edit.points);
+    case 'lights':
+      if (!Array.isArray(edit.lights)) return false;
+      lightsToControls(edit.lights);
+      return true;
+    case 'params':
+      return setParams(edit);
+    case 'technique':
+      return setTechnique(edit.name);
+    case 'quality':
+      return setIterations(edit.iterations);
+    case 'viewport':
+      // The session has one viewport: someone else's window size is now the picture's size.
+      if (!Number.isFinite(edit.width) || !Number.isFinite(edit.height)) return false;
+      vx.viewport = { width: edit.width, height: edit.height };
+      return true;
+    default:
+      return false; // newer servers may edit more
+  }
+}
+
+/** Keeps vx.state equal to the server's state (own edits included). @param {any} edit */
+function mirrorEdit(edit) {
+  const st = vx.state;
+  if (!st) return;
+  const { type, ...body } = edit;
+  if (type === 'camera') st.camera = body;
+  else if (type === 'tf') st.tf = body;
+  else if (type === 'lights') st.lights = body.lights;
+  else if (type === 'params') st.params = { ...st.params, ...body };
+  else if (type === 'technique') st.technique = body.name;
+  else if (type === 'viewport') st.viewport = body;
+  else if (type === 'quality' && Number.isFinite(body.iterations)) st.iterations = body.iterations;
+}
+
+/** `state`: we fell behind on edits; the whole state replaces what we missed. @param {any} m */
+function onStateResync(m) {
+  if (!m.state) return;
+  if (Number.isFinite(m.version)) vx.version = Math.max(vx.version, m.version);
+  vx.state = structuredClone(m.state);
+  // The echoes of our edits were among the missed messages: stop waiting for them. Input queued
+  // for the next animation frame is newer than this state, so it stays.
+  resetOwnEdits();
+  applyState(m.state, queuedLocally);
+  const svp = m.state.viewport;
+  if (svp && Number.isFinite(svp.width) && Number.isFinite(svp.height)) vx.viewport = { width: svp.width, height: svp.height };
+  if (typeof m.state.dataset === 'string' && m.state.dataset !== vx.dataset?.name) {
+    // We also missed a dataset switch; state carries only its name.
+    local.dataset = m.state.dataset;
+    $('hud-dataset').textContent = m.state.dataset;
+  }
+}
+
+/**
+ * "last edit: NAME" in the status line and next to the name in the viewer list.
+ * @param {any} by ViewerInfo
+ * @param {string} kind
+ */
+function noteOthersEdit(by, kind) {
+  vx.lastEditBy = { id: by.id, name: String(by.name || ''), kind, at: Date.now() };
+  const el = $('st-edit');
+  el.textContent = `last edit: ${vx.lastEditBy.name}`;
+  el.title = `${vx.lastEditBy.name} changed the ${kind} at ${new Date().toLocaleTimeString()}`;
+  el.classList.remove('flash');
+  void el.offsetWidth; // restart the highlight animation
+  el.classList.add('flash');
+  renderViewers();
+}
+
+/**
+ * @param {any} list ViewerInfo[]
+ * @param {boolean} announce toast who joined and left
+ */
+function setViewers(list, announce) {
+  const next = (Array.isArray(list) ? list : []).filter((v) => v && Number.isFinite(v.id)).map((v) => ({ id: v.id, name: String(v.name || '') }));
+  if (announce) {
+    const before = new Map(vx.viewers.map((v) => [v.id, v]));
+    const after = new Set(next.map((v) => v.id));
+    for (const v of next) if (!before.has(v.id) && !ownIds.has(v.id)) toast('info', 'joined', v.name);
+    for (const v of vx.viewers) if (!after.has(v.id) && !ownIds.has(v.id)) toast('info', 'left', v.name);
+  }
+  vx.viewers = next;
+  renderViewers();
+}
+
+function renderViewers() {
+  const ul = $('viewers');
+  ul.textContent = '';
+  for (const v of vx.viewers) {
+    const li = document.createElement('li');
+    li.dataset.id = String(v.id);
+    const name = document.createElement('span');
+    name.className = 'name';
+    name.textContent = v.name;
+    li.appendChild(name);
+    if (vx.viewer && v.id === vx.viewer.id) {
+      li.classList.add('you');
+      const you = document.createElement('span');
+      you.className = 'tag';
+      you.textContent = 'you';
+      li.appendChild(you);
+    } else if (vx.lastEditBy && vx.lastEditBy.id === v.id) {
+      const tag = document.createElement('span');
+      tag.className = 'tag dim';
+      tag.textContent = `edited ${vx.lastEditBy.kind}`;
+      li.appendChild(tag);
+    }
+    ul.appendChild(li);
+  }
+  const n = vx.viewers.length;
+  $('viewer-count').textContent = n ? `${n} viewer${n === 1 ? '' : 's'}` : '';
+}
+
+function namesOfOthers() {
+  return vx.viewers.filter((v) => !vx.viewer || v.id !== vx.viewer.id).map((v) => v.name).join(', ');
+}
+
+/** The page URL for a session: ?session=ID, other parameters kept, never a token. */
+function urlForSession(/** @type {string} */ id) {
+  const u = new URL(location.href);
+  u.searchParams.delete('token');
+  u.searchParams.set('session', id);
+  return u;
+}
+
+/** Puts ?session=ID in the address bar, so reloading (or copying the URL) rejoins. */
+function setSessionInUrl(/** @type {string} */ id) {
+  if (!id) return;
+  const u = urlForSession(id);
+  if (u.href !== location.href) history.replaceState(history.state, '', u.pathname + u.search + u.hash);
+}
+
+function shareLink() {
+  return vx.session ? urlForSession(vx.session).href : '';
+}
+
+$('share').addEventListener('click', async () => {
+  const link = shareLink();
+  if (!link) return;
+  const box = $('share-link');
+  box.value = link;
+  try {
+    await navigator.clipboard.writeText(link);
+    box.hidden = true;
+    toast('info', 'share', 'link copied: whoever opens it views and edits this session with you');
+  } catch {
+    // No clipboard (insecure origin, permission denied): let people copy it themselves.
+    box.hidden = false;
+    box.focus();
+    box.select();
+    toast('info', 'share', 'copy the link shown under the Share button');
+  }
+});
+
+const nameInput = $('name');
+nameInput.value = vx.name;
+nameInput.addEventListener('change', () => {
+  const name = cleanName(nameInput.value);
+  if (!name || name === vx.name) {
+    nameInput.value = vx.name;
+    return;
+  }
+  vx.name = name;
+  nameInput.value = name;
+  saveName(name);
+  // The others see it through the `viewers` list; hello carries it on reconnects.
+  if (conn.ready) send('name', { name });
+});
+
 // ---- frames --------------------------------------------------------------------------------
 
-/** @type {{meta: FrameMeta, image: Uint8Array, receivedAt: number} | null} */
+/** @typedef {{meta: FrameMeta, image: Uint8Array, receivedAt: number, welcomeNo: number}} Frame */
+
+/** @type {Frame | null} */
 let pendingFrame = null;
+/**
+ * Counts welcomes. A frame remembers the connection it came on: one still decoding when the
+ * connection changed must not be acknowledged on the new one (a new session numbers its frames
+ * from the start again, so its old, large seq would acknowledge frames not yet sent).
+ */
+let welcomeNo = 0;
+/** When the last frame arrived, and when the watchdog last repeated an ack (performance.now). */
+let lastFrameAt = 0;
+let lastReackAt = 0;
+/** Frames should be coming but none came for this long: repeat the newest ack. */
+const REACK_AFTER_MS = 3000;
 let decoding = false;
 /** @type {ImageBitmap | null} */
 let shownBitmap = null;
 /** Display times of the last second's frames, for fps. */
 const shownTimes = /** @type {number[]} */ ([]);
-/** The oldest edit not yet seen in a frame: {at, baseVersion, kind}. */
-let pendingEdit = /** @type {{at: number, baseVersion: number, kind: string} | null} */ (null);
+/**
+ * The oldest own edit not yet seen in a frame: {at, baseVersion, kind, target}. `target` is
+ * the version its echo announced; until the echo arrives any newer scene_version counts (others'
+ * edits can make that early, but the echo normally comes before the first frame showing it).
+ */
+let pendingEdit = /** @type {{at: number, baseVersion: number, kind: string, target: number|null} | null} */ (null);
 let maxSceneVersion = -1;
 
 function resetFrameTracking() {
+  welcomeNo++;
   pendingEdit = null;
   maxSceneVersion = -1;
   pendingFrame = null;
+  vx.acked = -1;
 }
 
-/** @param {{meta: FrameMeta, image: Uint8Array, receivedAt: number}} f */
-function onFrame(f) {
+/** @param {{meta: FrameMeta, image: Uint8Array, receivedAt: number}} detail */
+function onFrame(detail) {
+  const f = { ...detail, welcomeNo };
+  lastFrameAt = performance.now();
   vx.framesReceived++;
   vx.lastMeta = f.meta;
   const sv = Number(f.meta.scene_version);
   if (Number.isFinite(sv)) {
-    if (pendingEdit && sv > pendingEdit.baseVersion) {
+    if (pendingEdit && (pendingEdit.target != null ? sv >= pendingEdit.target : sv > pendingEdit.baseVersion)) {
       vx.lastLatencyMs = f.receivedAt - pendingEdit.at;
       pendingEdit = null;
     }
     maxSceneVersion = Math.max(maxSceneVersion, sv);
   }
   if (decoding) {
-    if (pendingFrame) vx.framesDropped++; // newest wins
+    if (pendingFrame) {
+      // Newest wins; the dropped one is acknowledged so the server's window keeps moving.
+      vx.framesDropped++;
+      ackFrame(pendingFrame);
+    }
     pendingFrame = f;
     return;
   }
   void decodeAndShow(f);
 }
 
-/** @param {{meta: FrameMeta, image: Uint8Array}} f */
+/**
+ * Acknowledges every frame up to this one (flow control, hello.max_in_flight): the server
+ * sends the next frame only when fewer than MAX_IN_FLIGHT are unacknowledged.
+ * @param {Frame} f
+ */
+function ackFrame(f) {
+  const seq = Number(f.meta && f.meta.seq);
+  if (f.welcomeNo !== welcomeNo || !Number.isSafeInteger(seq) || seq <= vx.acked) return;
+  if (send('ack', { seq })) vx.acked = seq;
+}
+
+/**
+ * Repeats the newest ack when the picture should be changing (not converged yet, or an edit
+ * newer than the last frame) but no frame came for a while: an ack the server dropped (its rate
+ * limit counts acks too) would otherwise leave the window full and the stream stalled for good.
+ * The server ignores an ack that is not newer than the last one it took, so this is harmless.
+ */
+function ackWatchdog() {
+  const m = vx.lastMeta;
+  if (!conn.ready || !m || vx.acked < 0 || decoding) return;
+  const expecting = !m.converged || vx.version > Number(m.scene_version);
+  const now = performance.now();
+  if (expecting && now - lastFrameAt > REACK_AFTER_MS && now - lastReackAt > REACK_AFTER_MS) {
+    lastReackAt = now;
+    send('ack', { seq: vx.acked });
+  }
+}
+setInterval(ackWatchdog, 1000);
+
+/** @param {Frame} f */
 async function decodeAndShow(f) {
   decoding = true;
   try {
@@ -250,6 +674,8 @@ async function decodeAndShow(f) {
   } catch (err) {
     console.warn('voxlight: could not decode frame', f.meta && f.meta.seq, err);
   } finally {
+    // Shown (or undecodable): either way the server may send the next one.
+    ackFrame(f);
     decoding = false;
     const next = pendingFrame;
     pendingFrame = null;
@@ -342,14 +768,13 @@ function flushOutbox() {
   for (const [type, build] of outbox) {
     const body = build();
     if (send(type, body) && (type === 'camera' || type === 'tf') && !pendingEdit) {
-      pendingEdit = { at: performance.now(), baseVersion: maxSceneVersion, kind: type };
+      pendingEdit = { at: performance.now(), baseVersion: maxSceneVersion, kind: type, target: null };
     }
   }
   outbox.clear();
 }
 
 function queueCamera() {
-  local.edited = true;
   queue('camera', () => {
     const m = Cam.toMessage(vx.camera);
     const { type: _t, ...body } = m;
@@ -358,7 +783,6 @@ function queueCamera() {
 }
 
 function queueTf(points) {
-  local.edited = true;
   queue('tf', () => ({ points }));
 }
 
@@ -599,7 +1023,6 @@ const sG = bindSlider('g', { toValue: (s) => s / 100, toSlider: (v) => Math.roun
   queueParams();
 });
 function queueParams() {
-  local.edited = true;
   queue('params', () => ({ ...local.params }));
 }
 
@@ -624,12 +1047,30 @@ const sEnv = bindSlider('light-env', envMap, fmt2, (v) => {
 
 const sJpeg = bindSlider('jpeg-q', identity, (v) => String(Math.round(v)), (v) => {
   local.jpeg_quality = Math.round(v);
-  queue('quality', () => ({ jpeg_quality: local.jpeg_quality, iterations: local.iterations }));
+  queueQuality('jpeg_quality');
 });
 const sIters = bindSlider('iters', itersMap, (v) => String(Math.round(v)), (v) => {
   local.iterations = Math.max(1, Math.round(v));
-  queue('quality', () => ({ jpeg_quality: local.jpeg_quality, iterations: local.iterations }));
+  queueQuality('iterations');
 });
+
+/**
+ * Fields of the next `quality` message. Only what changed is sent: `jpeg_quality` is this
+ * viewer's own, while `iterations` edits the shared session (everyone sees an `edited`).
+ */
+const qualityDirty = new Set();
+/** @param {'jpeg_quality'|'iterations'} field */
+function queueQuality(field) {
+  qualityDirty.add(field);
+  queue('quality', () => {
+    /** @type {Record<string, number>} */
+    const body = {};
+    if (qualityDirty.has('jpeg_quality')) body.jpeg_quality = local.jpeg_quality;
+    if (qualityDirty.has('iterations')) body.iterations = local.iterations;
+    qualityDirty.clear();
+    return body;
+  });
+}
 
 /**
  * Key-light direction from azimuth (degrees, 0 = from the front (−y), positive toward +x) and
@@ -667,7 +1108,6 @@ function buildLights() {
 }
 
 function queueLights() {
-  local.edited = true;
   local.lights = buildLights();
   queue('lights', () => ({ lights: local.lights }));
 }
@@ -710,7 +1150,6 @@ $('technique').addEventListener('change', () => {
   const name = $('technique').value;
   if (send('technique', { name })) {
     local.technique = name;
-    local.edited = true;
     showTechniqueDesc();
   }
 });
@@ -805,39 +1244,75 @@ function applyDatasetInfo(info) {
   }
 }
 
-/** @param {any} s SessionState */
-function applyState(s) {
-  if (s.camera && Cam.isValidCamera(s.camera)) {
-    vx.camera = Cam.cloneCamera(s.camera);
-  }
-  if (s.tf && Array.isArray(s.tf.points)) tfEditor.setPoints(s.tf.points);
-  markPreset(null);
-  if (s.params) {
-    for (const k of ['density_scale', 'g', 'exposure']) if (Number.isFinite(s.params[k])) local.params[k] = s.params[k];
-  }
-  sDensity.set(local.params.density_scale);
-  sExposure.set(local.params.exposure);
-  sG.set(local.params.g);
-  if (Array.isArray(s.lights)) lightsToControls(s.lights);
-  if (typeof s.technique === 'string') {
-    local.technique = s.technique;
-    $('technique').value = s.technique;
-  }
-  showTechniqueDesc();
+// The setters below change what the UI shows and never send anything: they apply the server's
+// state and others' edits, so sending from them would echo edits back and forth.
+
+/**
+ * Applies a whole SessionState (welcome, dataset_loaded, state).
+ * @param {any} s SessionState
+ * @param {(kind: string) => boolean} [keep] kinds to leave as they are (newer local input)
+ */
+function applyState(s, keep = () => false) {
+  if (!keep('camera')) setCamera(s.camera);
+  if (s.tf && !keep('tf')) setTf(s.tf.points);
+  if (!keep('params')) setParams(s.params);
+  if (Array.isArray(s.lights) && !keep('lights')) lightsToControls(s.lights);
+  if (!keep('technique')) setTechnique(s.technique);
   if (Number.isFinite(s.jpeg_quality)) local.jpeg_quality = s.jpeg_quality;
-  if (Number.isFinite(s.iterations)) local.iterations = s.iterations;
   sJpeg.set(local.jpeg_quality);
-  sIters.set(local.iterations);
+  if (!keep('quality')) setIterations(s.iterations);
   if (typeof s.dataset === 'string') ensureDatasetOption(s.dataset);
 }
 
-/** After a reconnect into a fresh session: send our whole local state. */
+/** @param {any} c Camera */
+function setCamera(c) {
+  if (!c || !Cam.isValidCamera(c)) return false;
+  vx.camera = Cam.cloneCamera(c);
+  return true;
+}
+
+/** @param {any} points TfPoint[] */
+function setTf(points) {
+  if (!Array.isArray(points)) return false;
+  tfEditor.setPoints(points);
+  markPreset(null);
+  return true;
+}
+
+/** @param {any} p RenderParams (absent fields keep their value) */
+function setParams(p) {
+  if (p) for (const k of ['density_scale', 'g', 'exposure']) if (Number.isFinite(p[k])) local.params[k] = p[k];
+  sDensity.set(local.params.density_scale);
+  sExposure.set(local.params.exposure);
+  sG.set(local.params.g);
+  return !!p;
+}
+
+/** @param {any} name */
+function setTechnique(name) {
+  if (typeof name === 'string') {
+    local.technique = name;
+    $('technique').value = name;
+  }
+  showTechniqueDesc();
+  return typeof name === 'string';
+}
+
+/** @param {any} n */
+function setIterations(n) {
+  if (Number.isFinite(n) && n >= 1) local.iterations = n;
+  sIters.set(local.iterations);
+  return Number.isFinite(n);
+}
+
+/** Into a fresh session after ours expired: send this page's whole state. */
 function pushAll() {
   send('camera', Cam.toMessage(vx.camera));
   send('tf', { points: tfEditor.points });
   send('lights', { lights: buildLights() });
   send('params', { ...local.params });
   if (local.technique && vx.welcome?.state?.technique !== local.technique) send('technique', { name: local.technique });
+  if (vx.welcome?.state?.iterations !== local.iterations) send('quality', { jpeg_quality: local.jpeg_quality, iterations: local.iterations });
   $('technique').value = local.technique;
   showTechniqueDesc();
 }
@@ -871,7 +1346,11 @@ function renderStatus() {
     }
   }
   $('st-lat').textContent = vx.lastLatencyMs == null ? 'edit→frame –' : `edit→frame ${Math.round(vx.lastLatencyMs)} ms`;
-  if (st) $('st-gpu').textContent = `gpu ${Number(st.gpu_ms || 0).toFixed(1)} ms · ${fmtBytes(st.memory_bytes || 0)}`;
+  if (st) {
+    $('st-gpu').textContent = `gpu ${Number(st.gpu_ms || 0).toFixed(1)} ms · ${fmtBytes(st.memory_bytes || 0)}`;
+    // Flow control and adaptation (what the server chose for this viewer's link).
+    $('st-fps').title = `Frames displayed per second (last second). Server: ${Number(st.fps || 0).toFixed(0)} fps sent, ${st.frames_skipped || 0} frames skipped while busy, JPEG quality ${st.jpeg_quality || '?'}`;
+  }
 }
 setInterval(renderStatus, 500);
 

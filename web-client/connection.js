@@ -1,6 +1,9 @@
 // WebSocket connection to the voxlight server: JSON text messages tagged by "type", binary
 // frames (4-byte little-endian length N, N bytes UTF-8 JSON FrameMeta, then the image), and
 // reconnection with exponential backoff. See docs/protocol.md.
+//
+// Which session a reconnect resumes is the caller's business: `makeHello` runs for every
+// (re)connection, so it can name the session to rejoin (`hello.session`).
 
 export const PROTOCOL_VERSION = 1;
 /** Largest text message the server accepts (protocol crate MAX_MESSAGE_BYTES). */
@@ -74,6 +77,8 @@ export class Connection extends EventTarget {
     this._timer = 0;
     this.bytesIn = 0;
     this.lastByeReason = '';
+    /** Delay for the next automatic reconnect instead of the backoff (once); null: backoff. */
+    this._nextDelayMs = /** @type {number|null} */ (null);
   }
 
   connect() {
@@ -145,7 +150,11 @@ export class Connection extends EventTarget {
   _scheduleReconnect(code, reason, everConnected = false) {
     // 0.5 s, 1 s, 2 s, 4 s, 8 s, then every 10 s, with ±20 % jitter.
     const base = Math.min(10000, 500 * Math.pow(2, Math.max(0, this.attempt - 1)));
-    const retryInMs = Math.round(base * (0.8 + 0.4 * Math.random()));
+    let retryInMs = Math.round(base * (0.8 + 0.4 * Math.random()));
+    if (this._nextDelayMs != null) {
+      retryInMs = this._nextDelayMs;
+      this._nextDelayMs = null;
+    }
     this._emit('close', { code, reason, retryInMs, everConnected });
     clearTimeout(this._timer);
     this._timer = setTimeout(() => this.connect(), retryInMs);
@@ -156,6 +165,15 @@ export class Connection extends EventTarget {
     if (this.ws && this.ws.readyState <= 1) return;
     this.attempt = 0;
     this.connect();
+  }
+
+  /**
+   * Makes the next automatic reconnect happen after `ms` instead of the backoff delay, e.g.
+   * when the server refused the hello for a reason the next hello fixes (`unknown_session`).
+   * @param {number} [ms]
+   */
+  reconnectSoon(ms = 0) {
+    this._nextDelayMs = Math.max(0, ms);
   }
 
   close() {

@@ -180,6 +180,10 @@ pub enum ClientMessage {
     Ack {
         seq: u64,
     },
+    /// Changes this viewer's display name (as in `hello.name`).
+    Name {
+        name: String,
+    },
     /// Open another dataset (by name, as listed by `/api/datasets`).
     Dataset {
         name: String,
@@ -324,6 +328,8 @@ pub enum ServerMessage {
         viewers: Vec<ViewerInfo>,
         /// `true` when `hello` joined an existing session.
         joined: bool,
+        /// The scene version `state` shows.
+        version: u64,
     },
     /// A viewer changed the session (last writer wins). Sent to every viewer, the editor
     /// included, in the order the server applied the edits; `edit` is the client message
@@ -336,10 +342,12 @@ pub enum ServerMessage {
         edit: Box<ClientMessage>,
     },
     /// The whole session state, sent when a viewer fell behind on `edited` messages (it
-    /// replaces everything the viewer missed).
+    /// replaces everything the viewer missed, including a dataset switch).
     State {
         state: SessionState,
         version: u64,
+        dataset: DatasetInfo,
+        viewers: Vec<ViewerInfo>,
     },
     /// Someone joined or left; the full list.
     Viewers {

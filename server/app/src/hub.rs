@@ -177,6 +177,14 @@ impl SharedSession {
         Ok((viewer, viewers.list.len()))
     }
 
+    /// Changes a viewer's display name; returns the viewer as now listed.
+    pub fn rename_viewer(&self, id: u32, name: &str) -> Option<ViewerInfo> {
+        let mut viewers = self.viewers.lock().ok()?;
+        let viewer = viewers.list.iter_mut().find(|v| v.id == id)?;
+        viewer.name = display_name(Some(name), id);
+        Some(viewer.clone())
+    }
+
     /// Removes a viewer; returns the viewers left and the list generation.
     pub fn remove_viewer(&self, id: u32) -> (usize, u64) {
         match self.viewers.lock() {

@@ -166,7 +166,7 @@ pub async fn handle_socket(socket: WebSocket, state: Arc<AppState>) {
         link.clone(),
         state.clone(),
     ));
-    read_loop(&state, &session, &info, stream, outbox, &link).await;
+    read_loop(&state, &session, info.clone(), stream, outbox, &link).await;
     leave(&state, &session, &info);
     let _ = writer.await;
 }
@@ -331,6 +331,7 @@ fn welcome(
         viewer: viewer.clone(),
         viewers: session.viewers(),
         joined,
+        version: core.version,
     })
 }
 
@@ -501,7 +502,7 @@ impl RateLimit {
 async fn read_loop(
     state: &Arc<AppState>,
     session: &Arc<SharedSession>,
-    viewer: &ViewerInfo,
+    mut viewer: ViewerInfo,
     mut stream: Stream,
     outbox: mpsc::Sender<ServerMessage>,
     link: &ViewerLink,
@@ -520,7 +521,10 @@ async fn read_loop(
                 return;
             }
         };
-        if let Err(report) = limit.take() {
+        let parsed = parse(message);
+        // Acknowledgements are exempt: dropping one would stall the viewer's frame window.
+        let is_ack = matches!(parsed, Ok(Some(ClientMessage::Ack { .. })));
+        if !is_ack && let Err(report) = limit.take() {
             if report {
                 let reply = Reply::new(
                     ErrorCode::RateLimited,
@@ -534,8 +538,8 @@ async fn read_loop(
             }
             continue;
         }
-        let result = match parse(message) {
-            Ok(Some(message)) => handle_message(state, session, viewer, message, link).await,
+        let result = match parsed {
+            Ok(Some(message)) => handle_message(state, session, &mut viewer, message, link).await,
             Ok(None) => Ok(()),
             Err(reply) => Err(reply),
         };
@@ -553,7 +557,7 @@ async fn read_loop(
 async fn handle_message(
     state: &Arc<AppState>,
     session: &SharedSession,
-    viewer: &ViewerInfo,
+    viewer: &mut ViewerInfo,
     message: ClientMessage,
     link: &ViewerLink,
 ) -> Result<(), Reply> {
@@ -564,6 +568,15 @@ async fn handle_message(
                 ErrorCode::NotReady,
                 "this connection already said hello",
             ));
+        }
+        ClientMessage::Name { name } => {
+            if let Some(renamed) = session.rename_viewer(viewer.id, &name) {
+                *viewer = renamed;
+                session.publish(ServerMessage::Viewers {
+                    viewers: session.viewers(),
+                });
+            }
+            return Ok(());
         }
         ClientMessage::Ack { seq } => {
             link.acked.send_if_modified(|acked| {
@@ -690,7 +703,9 @@ async fn handle_message(
             });
             return Ok(());
         }
-        ClientMessage::Hello { .. } | ClientMessage::Ack { .. } => return Ok(()),
+        ClientMessage::Hello { .. } | ClientMessage::Ack { .. } | ClientMessage::Name { .. } => {
+            return Ok(());
+        }
     };
     core.scene = scene.clone();
     bump_version(session, &mut core, arrived);
@@ -843,9 +858,12 @@ async fn write_loop(
                 Err(RecvError::Lagged(_)) => {
                     // Fell behind on edits: one message with the whole state replaces them.
                     let core = session.core.lock().await;
+                    let Some(dataset) = state.catalog.info(&core.dataset) else { continue };
                     text(&ServerMessage::State {
                         state: core.state(link.jpeg_quality.load(Ordering::Relaxed)),
                         version: core.version,
+                        dataset,
+                        viewers: session.viewers(),
                     })
                 }
                 Err(RecvError::Closed) => break,
