@@ -19,38 +19,6 @@ const MAX_BOUNCES: u32 = 1024u;
 const ROULETTE_START: u32 = 3u;
 // Ratio tracking plays roulette once the transmittance estimate falls below this.
 const RATIO_ROULETTE: f32 = 0.05;
-// Step past a cell face so the next lookup lands in the next cell.
-const CELL_NUDGE: f32 = 1e-5;
-
-// Distance along origin + t·dir to the first real collision in [t0, t1]; w = 1 when one
-// happened, 0 when the ray left the interval.
-fn delta_track(origin: vec3<f32>, dir: vec3<f32>, t0: f32, t1: f32, rng: ptr<function, Rng>) -> vec2<f32> {
-    var t = t0;
-    loop {
-        if (t >= t1) {
-            return vec2<f32>(t1, 0.0);
-        }
-        let cell = cell_of(box_relative(origin + dir * (t + CELL_NUDGE)));
-        let t_exit = min(cell_exit(origin, dir, cell), t1);
-        let majorant = cell_majorant(cell);
-        if (majorant <= 0.0) {
-            t = max(t_exit, t + CELL_NUDGE);
-            continue;
-        }
-        let free_flight = -log(1.0 - rng_next(rng)) / majorant;
-        if (t + free_flight >= t_exit) {
-            // Memoryless: restart at the face with the next cell's majorant.
-            t = max(t_exit, t + CELL_NUDGE);
-            continue;
-        }
-        t += free_flight;
-        if (rng_next(rng) * majorant < medium_at(origin + dir * t).a) {
-            return vec2<f32>(t, 1.0);
-        }
-    }
-    return vec2<f32>(t1, 0.0);
-}
-
 // Transmittance from p along dir over at most t_max, by ratio tracking (unbiased); the
 // shadow-ray estimator of lights.wgsl.
 fn shadow_transmittance(p: vec3<f32>, dir: vec3<f32>, t_max: f32, rng: ptr<function, Rng>) -> f32 {

@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use serde_json::json;
 use voxlight_engine::{Engine, Scene};
-use voxlight_protocol::{Camera, Viewport, default_lights};
+use voxlight_protocol::{Camera, TfPoint, TransferFunction, Viewport, default_lights};
 
 /// Options of `bench raymarch`.
 pub struct RaymarchBench<'a> {
@@ -68,5 +68,342 @@ pub fn raymarch(options: &RaymarchBench) -> anyhow::Result<serde_json::Value> {
         "dataset": dataset,
         "dims": volume.dims,
         "results": results,
+    }))
+}
+
+/// Options of `bench tf-edit`.
+pub struct TfEditBench<'a> {
+    pub data_dir: Option<&'a Path>,
+    pub technique: &'a str,
+    /// Image edge in pixels.
+    pub size: u32,
+    /// Largest volume edge after downsampling (keeps lavapipe runs short).
+    pub max_dim: u32,
+    pub photons_per_pass: u32,
+    pub passes: u32,
+    pub bounces: u32,
+    pub segments: u32,
+}
+
+/// One TF edit of a scenario: a name and the edited TF.
+struct Edit {
+    name: &'static str,
+    tf: TransferFunction,
+}
+
+fn tf_point(value: f32, color: [f32; 3], opacity: f32) -> TfPoint {
+    TfPoint {
+        value,
+        color,
+        opacity,
+    }
+}
+
+fn scaled_colors(
+    tf: &TransferFunction,
+    f: impl Fn(usize, &TfPoint) -> Option<TfPoint>,
+) -> TransferFunction {
+    TransferFunction {
+        points: tf
+            .points
+            .iter()
+            .enumerate()
+            .map(|(i, p)| f(i, p).unwrap_or(*p))
+            .collect(),
+    }
+}
+
+/// The four edits of the issue on a TF: one material's colour, one material removed, the
+/// skin/outer layer, everything. `materials` lists the point index ranges of (densest
+/// material, removable material, outer layer).
+fn edits_for(
+    tf: &TransferFunction,
+    colour: std::ops::Range<usize>,
+    removed: std::ops::Range<usize>,
+    outer: std::ops::Range<usize>,
+) -> Vec<Edit> {
+    vec![
+        Edit {
+            name: "material colour",
+            tf: scaled_colors(tf, |i, p| {
+                colour.contains(&i).then_some(TfPoint {
+                    color: [0.2, 0.35, 0.9],
+                    ..*p
+                })
+            }),
+        },
+        Edit {
+            name: "material removed",
+            tf: scaled_colors(tf, |i, p| {
+                removed
+                    .contains(&i)
+                    .then_some(TfPoint { opacity: 0.0, ..*p })
+            }),
+        },
+        Edit {
+            name: "outer layer",
+            tf: scaled_colors(tf, |i, p| {
+                outer.contains(&i).then_some(TfPoint {
+                    color: p.color.map(|c| c * 0.6),
+                    opacity: p.opacity * 0.5,
+                    ..*p
+                })
+            }),
+        },
+        Edit {
+            name: "global",
+            tf: scaled_colors(tf, |_, p| {
+                Some(TfPoint {
+                    color: p.color.map(|c| c * 0.8),
+                    opacity: p.opacity * 0.9,
+                    ..*p
+                })
+            }),
+        },
+    ]
+}
+
+struct Scenario {
+    name: &'static str,
+    dataset: String,
+    volume: voxlight_volumes::Volume,
+    camera: Camera,
+    tf: TransferFunction,
+    edits: Vec<Edit>,
+}
+
+fn tf_edit_scenarios(options: &TfEditBench) -> anyhow::Result<Vec<Scenario>> {
+    let mut out = Vec::new();
+    let mut cornell = voxlight_volumes::phantom("cornell", options.max_dim.min(64))?;
+    cornell.name = "phantom:cornell".to_owned();
+    let tf = crate::datasets::cornell_tf();
+    // cornell_tf: a leading transparent pair, then two points per material in
+    // CORNELL_MATERIALS order (medium, left, right, white walls, tall block, sphere).
+    let material = |name: &str| {
+        let i = voxlight_volumes::CORNELL_MATERIALS
+            .iter()
+            .position(|(n, _)| *n == name)
+            .unwrap_or(0);
+        let first = tf.points.len() - 2 * (voxlight_volumes::CORNELL_MATERIALS.len() - i);
+        first..first + 2
+    };
+    let edits = edits_for(
+        &tf,
+        material("sphere"),
+        material("tall block"),
+        material("white walls"),
+    );
+    out.push(Scenario {
+        name: "cornell",
+        dataset: format!("phantom:cornell@{}", cornell.dims[0]),
+        volume: cornell,
+        // Into the open front (z = max), y up.
+        camera: Camera {
+            eye: [0.0, 0.0, 2.6],
+            target: [0.0, 0.0, 0.0],
+            up: [0.0, 1.0, 0.0],
+            fov_deg: 28.0,
+        },
+        tf,
+        edits,
+    });
+    let Some(dir) = options.data_dir else {
+        eprintln!("tf-edit: no data folder (../shared/data); only the Cornell phantom is measured");
+        return Ok(out);
+    };
+    for (name, rel) in [("engine", "vti/engine.vti"), ("chest", "ct-chest-lidc")] {
+        let path = dir.join(rel);
+        if !path.exists() {
+            eprintln!(
+                "tf-edit: {} is missing; scenario `{name}` skipped",
+                path.display()
+            );
+            continue;
+        }
+        let mut volume = voxlight_volumes::load(&path)
+            .with_context(|| format!("loading {}", path.display()))?
+            .downsampled(options.max_dim);
+        volume.name = rel.to_owned();
+        let (tf, edits) = if name == "engine" {
+            // Two materials (histogram of engine.vti): the block around v ≈ 0.5–0.63 and the
+            // dense parts above 0.75; below 0.4 is air and partial volume.
+            let tf = TransferFunction {
+                points: vec![
+                    tf_point(0.0, [0.0; 3], 0.0),
+                    tf_point(0.45, [0.6, 0.65, 0.75], 0.0),
+                    tf_point(0.50, [0.6, 0.65, 0.75], 0.25),
+                    tf_point(0.62, [0.6, 0.65, 0.75], 0.25),
+                    tf_point(0.68, [0.6, 0.65, 0.75], 0.0),
+                    tf_point(0.72, [0.9, 0.55, 0.25], 0.0),
+                    tf_point(0.78, [0.9, 0.55, 0.25], 1.0),
+                    tf_point(1.0, [0.9, 0.55, 0.25], 1.0),
+                ],
+            };
+            let edits = edits_for(&tf, 6..8, 6..8, 2..4);
+            (tf, edits)
+        } else {
+            // HU default: [-200, 0, 150, 300, 1200]: bone 3..5, soft tissue 1..3, skin and
+            // the outer soft layer 0..2.
+            let tf = crate::datasets::default_tf(&volume);
+            let n = tf.points.len();
+            let edits = if n >= 5 {
+                edits_for(&tf, 3..5, 1..3, 0..2)
+            } else {
+                edits_for(&tf, n - 1..n, 0..n, 0..1)
+            };
+            (tf, edits)
+        };
+        out.push(Scenario {
+            name,
+            dataset: format!(
+                "{rel}@{}x{}x{}",
+                volume.dims[0], volume.dims[1], volume.dims[2]
+            ),
+            volume,
+            camera: Camera::default(),
+            tf,
+            edits,
+        });
+    }
+    Ok(out)
+}
+
+/// `bench tf-edit --technique photon`: for each scenario and edit, a full recompute with the
+/// new TF vs the incremental (historygram) update of the old state, in the same run, with
+/// the pictures compared (max_abs_diff) and every buffer compared bit for bit. Also measures
+/// the update without the spatial historygram.
+pub fn tf_edit(options: &TfEditBench) -> anyhow::Result<serde_json::Value> {
+    use voxlight_engine::techniques::photon::{Invalidation, Photon, PhotonParams};
+    if options.technique != "photon" {
+        anyhow::bail!(
+            "bench tf-edit measures incremental TF updates; only `photon` has them (got `{}`)",
+            options.technique
+        );
+    }
+    let engine = Engine::new()?;
+    let params = PhotonParams {
+        photons_per_pass: options.photons_per_pass,
+        max_passes: options.passes,
+        bounces: options.bounces,
+        segments: options.segments,
+        invalidation: Invalidation::DirtyCells,
+        ..PhotonParams::default()
+    };
+    // The same update with the paper's spatial historygram and with none (any changed photon
+    // invalidates every segment), to measure what each saves.
+    let variants = [Invalidation::SpatialHistogram, Invalidation::AnyPhoton].map(|invalidation| {
+        PhotonParams {
+            invalidation,
+            ..params
+        }
+    });
+    let mut rows = Vec::new();
+    for scenario in tf_edit_scenarios(options)? {
+        let gpu_volume = engine.upload_volume(&scenario.volume)?;
+        let base = Scene {
+            camera: scenario.camera,
+            tf: scenario.tf.clone(),
+            lights: crate::datasets::default_lights_for(&scenario.volume),
+            viewport: Viewport {
+                width: options.size,
+                height: options.size,
+            },
+            target_iterations: options.passes,
+            ..Scene::default()
+        };
+        let mut full = Photon::new(&engine, Arc::clone(&gpu_volume), &base, params)?;
+        let mut incremental = Photon::new(&engine, Arc::clone(&gpu_volume), &base, params)?;
+        let mut others = variants
+            .iter()
+            .map(|p| Photon::new(&engine, Arc::clone(&gpu_volume), &base, *p))
+            .collect::<Result<Vec<_>, _>>()?;
+        // Warm-up (first dispatches compile on some drivers).
+        full.recompute(&engine, &base, options.passes)?;
+        for edit in &scenario.edits {
+            let scene = Scene {
+                tf: edit.tf.clone(),
+                ..base.clone()
+            };
+            let query = voxlight_engine::tf::query_historygram(&base.tf, &scene.tf);
+            incremental.recompute(&engine, &base, options.passes)?;
+            for other in &mut others {
+                other.recompute(&engine, &base, options.passes)?;
+            }
+
+            let started = Instant::now();
+            full.recompute(&engine, &scene, options.passes)?;
+            let full_ms = started.elapsed().as_secs_f64() * 1000.0;
+
+            let started = Instant::now();
+            let report = incremental.update_tf(&engine, &scene, query)?;
+            let incremental_ms = started.elapsed().as_secs_f64() * 1000.0;
+
+            let a = incremental.read_state(&engine)?;
+            let b = full.read_state(&engine)?;
+            let mut bit_exact = a == b;
+            let mut variant_rows = serde_json::Map::new();
+            for other in &mut others {
+                let started = Instant::now();
+                let r = other.update_tf(&engine, &scene, query)?;
+                let ms = started.elapsed().as_secs_f64() * 1000.0;
+                bit_exact &= other.read_state(&engine)? == b;
+                variant_rows.insert(
+                    other.params().invalidation.name().to_owned(),
+                    json!({
+                        "incremental_ms": ms,
+                        "speedup": full_ms / ms.max(1e-6),
+                        "segments_recomputed_pct": r.segments_recomputed_pct(),
+                    }),
+                );
+            }
+            let max_abs_diff = a
+                .hdr
+                .iter()
+                .zip(&b.hdr)
+                .flat_map(|(x, y)| (0..3).map(move |k| (x[k] - y[k]).abs()))
+                .fold(0.0f32, f32::max);
+            let speedup = full_ms / incremental_ms.max(1e-6);
+            eprintln!(
+                "{} / {}: full {full_ms:.1} ms, incremental {incremental_ms:.1} ms ({speedup:.2}×), \
+                 retraced {:.1}%, segments {:.1}%, query bins {}, max_abs_diff {max_abs_diff}, \
+                 bit-exact {bit_exact}; other segment tests: {}",
+                scenario.name,
+                edit.name,
+                report.photons_retraced_pct(),
+                report.segments_recomputed_pct(),
+                query.count_ones(),
+                serde_json::Value::Object(variant_rows.clone()),
+            );
+            rows.push(json!({
+                "name": scenario.name,
+                "dataset": scenario.dataset,
+                "edit": edit.name,
+                "full_ms": full_ms,
+                "incremental_ms": incremental_ms,
+                "speedup": speedup,
+                "photons_retraced_pct": report.photons_retraced_pct(),
+                "segments_recomputed_pct": report.segments_recomputed_pct(),
+                "max_abs_diff": max_abs_diff,
+                "bit_exact": bit_exact,
+                "query_bins": query.count_ones(),
+                "records_changed": report.records_changed,
+                "segment_test": params.invalidation.name(),
+                "other_segment_tests": variant_rows,
+            }));
+        }
+    }
+    Ok(json!({
+        "bench": "tf-edit",
+        "technique": options.technique,
+        "adapter": engine.gpu.adapter_name(),
+        "software_renderer": engine.gpu.is_software(),
+        "width": options.size,
+        "height": options.size,
+        "photons": options.photons_per_pass as u64 * options.passes as u64,
+        "passes": options.passes,
+        "bounces": options.bounces,
+        "segments": options.segments,
+        "invalidation": params.invalidation.name(),
+        "scenarios": rows,
     }))
 }

@@ -102,9 +102,30 @@ enum Command {
         #[arg(long)]
         pfm: Option<PathBuf>,
     },
-    /// Run a benchmark (`raymarch`).
+    /// Run a benchmark (`raymarch`, `tf-edit`).
     Bench {
         name: String,
+        /// Technique measured by `tf-edit`.
+        #[arg(long, default_value = "photon")]
+        technique: String,
+        /// `tf-edit`: image edge in pixels.
+        #[arg(long, default_value_t = 96)]
+        size: u32,
+        /// `tf-edit`: largest volume edge after downsampling.
+        #[arg(long, default_value_t = 96)]
+        max_dim: u32,
+        /// `tf-edit`: photon paths per pass.
+        #[arg(long, default_value_t = 16384)]
+        photons: u32,
+        /// `tf-edit`: photon passes in the map.
+        #[arg(long, default_value_t = 4)]
+        passes: u32,
+        /// `tf-edit`: scattering events stored per photon path.
+        #[arg(long, default_value_t = 2)]
+        bounces: u32,
+        /// `tf-edit`: view-ray segments per pixel.
+        #[arg(long, default_value_t = 8)]
+        segments: u32,
         /// Print one JSON object on the last line.
         #[arg(long)]
         json: bool,
@@ -222,6 +243,13 @@ fn run() -> anyhow::Result<()> {
         Command::Render { scene, out, pfm } => offline::render(&scene, &out, pfm.as_deref()),
         Command::Bench {
             name,
+            technique,
+            size,
+            max_dim,
+            photons,
+            passes,
+            bounces,
+            segments,
             json,
             data,
             sizes,
@@ -234,7 +262,17 @@ fn run() -> anyhow::Result<()> {
                     sizes: &sizes,
                     iterations: iterations.max(1),
                 })?,
-                other => anyhow::bail!("unknown benchmark `{other}`; available: raymarch"),
+                "tf-edit" => bench::tf_edit(&bench::TfEditBench {
+                    data_dir: data.as_deref(),
+                    technique: &technique,
+                    size: size.max(1),
+                    max_dim: max_dim.max(8),
+                    photons_per_pass: photons.max(1),
+                    passes: passes.max(1),
+                    bounces: bounces.max(1),
+                    segments: segments.max(1),
+                })?,
+                other => anyhow::bail!("unknown benchmark `{other}`; available: raymarch, tf-edit"),
             };
             if json {
                 println!("{result}");

@@ -63,7 +63,9 @@ pub struct Engine {
     pub gpu: Arc<Gpu>,
     pub raymarch: passes::estimator::EstimatorPass,
     pub pathtrace: passes::estimator::EstimatorPass,
+    pub photon: passes::photon::PhotonPass,
     pub tonemap: passes::tonemap::TonemapPass,
+    pub manylight: passes::manylight::ManylightPasses,
     /// Most GPU bytes one session may allocate (besides the shared volume texture).
     pub session_budget: u64,
 }
@@ -77,14 +79,18 @@ impl Engine {
     pub fn with_gpu(gpu: Arc<Gpu>) -> Result<Self, EngineError> {
         let raymarch = passes::raymarch::new(&gpu);
         let pathtrace = passes::pathtrace::new(&gpu);
+        let photon = passes::photon::PhotonPass::new(&gpu);
         let tonemap = passes::tonemap::TonemapPass::new(&gpu);
+        let manylight = passes::manylight::ManylightPasses::new(&gpu);
         gpu.check()?;
         let session_budget = gpu.limits.max_buffer_size.min(2 << 30);
         Ok(Self {
             gpu,
             raymarch,
             pathtrace,
+            photon,
             tonemap,
+            manylight,
             session_budget,
         })
     }

@@ -6,6 +6,7 @@ use std::time::Duration;
 
 use crate::passes::tonemap::ToneParams;
 use crate::technique::{StepReport, Technique, TechniqueStats};
+use crate::techniques::photon::{Photon, PhotonParams};
 use crate::techniques::progressive::{Estimator, Progressive, accum_bytes};
 use crate::{Change, Engine, EngineError, GpuVolume, Scene};
 
@@ -59,8 +60,32 @@ impl Renderer {
                 volume.clone(),
                 scene,
             )?),
+            "photon" => Box::new(Photon::new(
+                engine,
+                volume.clone(),
+                scene,
+                PhotonParams::default(),
+            )?),
+            "manylight" => Box::new(crate::techniques::manylight::Manylight::new(
+                engine,
+                volume.clone(),
+                scene,
+                Default::default(),
+            )?),
             other => return Err(EngineError::UnknownTechnique(other.to_owned())),
         };
+        Self::with_technique(engine, technique, volume, scene)
+    }
+
+    /// A renderer around a technique built by the caller (tests and benchmarks that configure
+    /// one beyond its defaults).
+    pub fn with_technique(
+        engine: &Engine,
+        technique: Box<dyn Technique>,
+        volume: Arc<GpuVolume>,
+        scene: &Scene,
+    ) -> Result<Self, EngineError> {
+        check_budget(engine, scene)?;
         let (tone_params, rgba, tone_bind_group) =
             tone_resources(engine, technique.output(), scene);
         engine.gpu.check()?;
@@ -122,7 +147,7 @@ impl Renderer {
     }
 
     pub fn converged(&self, scene: &Scene) -> bool {
-        self.technique.iteration() >= scene.target_iterations
+        self.technique.iteration() >= self.technique.target_iterations(scene)
     }
 
     pub fn stats(&self) -> TechniqueStats {
@@ -160,7 +185,7 @@ impl Renderer {
             height: self.height,
             rgba,
             iteration: self.technique.iteration(),
-            target_iterations: scene.target_iterations,
+            target_iterations: self.technique.target_iterations(scene),
             converged: self.converged(scene),
         })
     }

@@ -6,18 +6,87 @@ pub const VOLUME: &str = include_str!("../../../shaders/volume.wgsl");
 pub const SCENE: &str = include_str!("../../../shaders/scene.wgsl");
 pub const LIGHTS: &str = include_str!("../../../shaders/lights.wgsl");
 pub const MACROCELL: &str = include_str!("../../../shaders/macrocell.wgsl");
+pub const TRACKING: &str = include_str!("../../../shaders/tracking.wgsl");
+pub const MARCH: &str = include_str!("../../../shaders/march.wgsl");
+pub const MANYLIGHT_COMMON: &str = include_str!("../../../shaders/manylight_common.wgsl");
+pub const MANYLIGHT_VLS: &str = include_str!("../../../shaders/manylight_vls.wgsl");
+pub const MANYLIGHT_AVSM: &str = include_str!("../../../shaders/manylight_avsm.wgsl");
+pub const MANYLIGHT_GATHER: &str = include_str!("../../../shaders/manylight_gather.wgsl");
 pub const RAYMARCH: &str = include_str!("../../../shaders/raymarch.wgsl");
 pub const PATHTRACE: &str = include_str!("../../../shaders/pathtrace.wgsl");
+pub const PHOTON_COMMON: &str = include_str!("../../../shaders/photon_common.wgsl");
+pub const PHOTON_TRACE: &str = include_str!("../../../shaders/photon_trace.wgsl");
+pub const PHOTON_GRID: &str = include_str!("../../../shaders/photon_grid.wgsl");
+pub const PHOTON_GATHER: &str = include_str!("../../../shaders/photon_gather.wgsl");
 pub const TONEMAP: &str = include_str!("../../../shaders/tonemap.wgsl");
 
 /// The raymarch pass with its shared pieces.
 pub fn raymarch() -> String {
-    [COMMON, VOLUME, SCENE, MACROCELL, LIGHTS, RAYMARCH].concat()
+    [COMMON, VOLUME, SCENE, MACROCELL, MARCH, LIGHTS, RAYMARCH].concat()
 }
 
 /// The path tracer with its shared pieces.
 pub fn pathtrace() -> String {
-    [COMMON, VOLUME, SCENE, MACROCELL, LIGHTS, PATHTRACE].concat()
+    [
+        COMMON, VOLUME, SCENE, MACROCELL, TRACKING, LIGHTS, PATHTRACE,
+    ]
+    .concat()
+}
+
+/// `manylight`, pass 1: virtual lights by random walks from the lights.
+pub fn manylight_vls() -> String {
+    [
+        COMMON,
+        VOLUME,
+        SCENE,
+        MACROCELL,
+        TRACKING,
+        MANYLIGHT_COMMON,
+        MANYLIGHT_VLS,
+    ]
+    .concat()
+}
+
+/// `manylight`, pass 2: one adaptive volumetric shadow map per virtual light.
+pub fn manylight_avsm() -> String {
+    [
+        COMMON,
+        VOLUME,
+        SCENE,
+        MACROCELL,
+        MANYLIGHT_COMMON,
+        MANYLIGHT_AVSM,
+    ]
+    .concat()
+}
+
+/// `manylight`, pass 3: multiple scattering gathered from the virtual lights.
+pub fn manylight_gather() -> String {
+    [
+        COMMON,
+        VOLUME,
+        SCENE,
+        MACROCELL,
+        MARCH,
+        MANYLIGHT_COMMON,
+        MANYLIGHT_GATHER,
+    ]
+    .concat()
+}
+
+/// Photon tracing (technique `photon`).
+pub fn photon_trace() -> String {
+    [COMMON, VOLUME, SCENE, PHOTON_COMMON, PHOTON_TRACE].concat()
+}
+
+/// The photon hash-grid build (technique `photon`).
+pub fn photon_grid() -> String {
+    [COMMON, VOLUME, SCENE, PHOTON_COMMON, PHOTON_GRID].concat()
+}
+
+/// Radiance gathering along view-ray segments and compositing (technique `photon`).
+pub fn photon_gather() -> String {
+    [COMMON, VOLUME, SCENE, PHOTON_COMMON, PHOTON_GATHER].concat()
 }
 
 pub fn tonemap() -> String {
@@ -29,6 +98,12 @@ pub fn all() -> Vec<(&'static str, String)> {
     vec![
         ("raymarch", raymarch()),
         ("pathtrace", pathtrace()),
+        ("photon_trace", photon_trace()),
+        ("photon_grid", photon_grid()),
+        ("photon_gather", photon_gather()),
         ("tonemap", tonemap()),
+        ("manylight_vls", manylight_vls()),
+        ("manylight_avsm", manylight_avsm()),
+        ("manylight_gather", manylight_gather()),
     ]
 }

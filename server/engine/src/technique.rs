@@ -24,6 +24,14 @@ pub struct TechniqueStats {
     pub iteration: u32,
     /// GPU bytes this session's technique allocated (not counting the shared volume).
     pub memory_bytes: u64,
+    /// `photon`: photon paths traced since the session started (retraced ones included).
+    pub photons_traced: u64,
+    /// `photon`: photon paths in the current map.
+    pub photons_in_map: u64,
+    /// `photon`: share of the map's paths the last TF edit retraced (None before any edit).
+    pub photons_retraced_pct: Option<f32>,
+    /// `photon`: share of the view-ray segments the last TF edit gathered again.
+    pub segments_recomputed_pct: Option<f32>,
 }
 
 pub trait Technique: Send {
@@ -42,5 +50,10 @@ pub trait Technique: Send {
     /// The HDR estimate: width × height `vec4<f32>`, rgb = sum of samples, w = sample count.
     fn output(&self) -> &wgpu::Buffer;
     fn iteration(&self) -> u32;
+    /// Iterations after which the picture is converged (a technique may stop earlier than
+    /// the scene asks, e.g. when its buffers hold only so many photon passes).
+    fn target_iterations(&self, scene: &Scene) -> u32 {
+        scene.target_iterations
+    }
     fn stats(&self) -> TechniqueStats;
 }

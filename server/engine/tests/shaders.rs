@@ -3,6 +3,7 @@
 
 use std::mem::{offset_of, size_of};
 
+use voxlight_engine::passes::manylight::{ManylightParams, VirtualLight};
 use voxlight_engine::passes::tonemap::ToneParams;
 use voxlight_engine::scene_gpu::{GpuLight, SceneUniforms};
 use voxlight_engine::shaders;
@@ -116,5 +117,18 @@ fn rust_and_wgsl_layouts_agree() {
         "ToneParams",
         size_of::<ToneParams>(),
         fields!(ToneParams: width, height, exposure, pad0),
+    );
+    let gather = parse_and_validate("manylight_gather", &shaders::manylight_gather());
+    assert_layout(
+        &gather,
+        "ManylightParams",
+        size_of::<ManylightParams>(),
+        fields!(ManylightParams: paths, vls_per_path, face_res, nodes, mode, seed, vsl_radius, built_density),
+    );
+    assert_layout(
+        &gather,
+        "VirtualLight",
+        size_of::<VirtualLight>(),
+        fields!(VirtualLight: position, pad0, power, pad1, direction, pad2),
     );
 }

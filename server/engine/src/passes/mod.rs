@@ -2,7 +2,9 @@
 //! `#[repr(C)]` structs it binds.
 
 pub mod estimator;
+pub mod manylight;
 pub mod pathtrace;
+pub mod photon;
 pub mod raymarch;
 pub mod tonemap;
 

@@ -133,6 +133,65 @@ impl Progressive {
         Ok(technique)
     }
 
+    /// The buffers the estimator binds (for techniques that add passes over the same ones).
+    pub(crate) fn bindings(&self) -> EstimatorBindings<'_> {
+        EstimatorBindings {
+            scene: &self.scene_buf,
+            volume: &self.volume.view,
+            tf_lut: &self.tf_lut,
+            lights: &self.lights,
+            accum: &self.accum,
+            cell_max_opacity: &self.cell_max_opacity,
+        }
+    }
+
+    /// Writes the uniforms of the next iteration and encodes its estimator dispatch; the caller
+    /// submits, then calls `advance`.
+    pub(crate) fn encode_next(
+        &self,
+        engine: &Engine,
+        scene: &Scene,
+        encoder: &mut wgpu::CommandEncoder,
+    ) -> Result<(), EngineError> {
+        self.encode_uniforms(engine, scene)?;
+        self.estimator.pass(engine).encode(
+            encoder,
+            &self.bind_group,
+            self.width,
+            self.height,
+            None,
+        );
+        Ok(())
+    }
+
+    /// Writes the scene uniforms of the next iteration.
+    pub(crate) fn encode_uniforms(
+        &self,
+        engine: &Engine,
+        scene: &Scene,
+    ) -> Result<(), EngineError> {
+        let uniforms = SceneUniforms::new(scene, &self.volume, self.iteration)
+            .map_err(EngineError::InvalidScene)?;
+        engine
+            .gpu
+            .queue
+            .write_buffer(&self.scene_buf, 0, bytemuck::bytes_of(&uniforms));
+        Ok(())
+    }
+
+    /// Starts the picture over.
+    pub(crate) fn restart(&mut self) {
+        self.iteration = 0;
+    }
+
+    pub(crate) fn advance(&mut self) {
+        self.iteration += 1;
+    }
+
+    pub(crate) fn size(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+
     fn write_tf(&self, engine: &Engine, scene: &Scene) {
         let lut = bake(&scene.tf);
         let queue = &engine.gpu.queue;
@@ -264,6 +323,7 @@ impl Technique for Progressive {
                 + (TF_LUT_SIZE * 16) as u64
                 + (MAX_LIGHTS * size_of::<GpuLight>()) as u64
                 + size_of::<SceneUniforms>() as u64,
+            ..TechniqueStats::default()
         }
     }
 }

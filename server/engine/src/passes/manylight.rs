@@ -1,0 +1,137 @@
+//! The three passes of technique `manylight` (shaders/manylight_*.wgsl): virtual lights,
+//! their adaptive volumetric shadow maps, and gathering. All three bind the estimator's
+//! bindings 0–5 (crate::passes::estimator) plus the technique's parameters, virtual lights and
+//! shadow maps (6–8), through one bind group layout.
+
+use bytemuck::{Pod, Zeroable};
+
+use super::{storage_entry, uniform_entry, volume_entry};
+use crate::Gpu;
+
+/// Matches `ManylightParams` in manylight_common.wgsl.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
+pub struct ManylightParams {
+    pub paths: u32,
+    pub vls_per_path: u32,
+    pub face_res: u32,
+    pub nodes: u32,
+    pub mode: u32,
+    pub seed: u32,
+    pub vsl_radius: f32,
+    pub built_density: f32,
+}
+
+/// Matches `VirtualLight` in manylight_common.wgsl.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
+pub struct VirtualLight {
+    pub position: [f32; 3],
+    pub pad0: f32,
+    pub power: [f32; 3],
+    pub pad1: f32,
+    pub direction: [f32; 3],
+    pub pad2: f32,
+}
+
+/// Matches `GatherChunk` in manylight_gather.wgsl: the virtual lights one gather dispatch
+/// covers, bound with a dynamic offset (one `CHUNK_STRIDE` slot per chunk).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
+pub struct GatherChunk {
+    pub first: u32,
+    pub count: u32,
+    pub pad0: u32,
+    pub pad1: u32,
+}
+
+/// Bytes between chunk descriptors (the uniform dynamic-offset alignment).
+pub const CHUNK_STRIDE: u64 = 256;
+
+/// Virtual lights per gather dispatch: llvmpipe ends a shader invocation's loops after 65535
+/// iterations in all, and each light costs a shadow-map lookup (≤ 4 × nodes iterations) or a
+/// ray march (up to ~2 iterations per voxel edge).
+pub fn gather_chunk(mode: TransmittanceMode) -> u32 {
+    match mode {
+        TransmittanceMode::RayMarched => 64,
+        TransmittanceMode::AvsmPoint | TransmittanceMode::AvsmTrilinear => 512,
+    }
+}
+
+/// Transmittance from the virtual lights (ManylightParams::mode).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TransmittanceMode {
+    AvsmPoint = 0,
+    AvsmTrilinear = 1,
+    RayMarched = 2,
+}
+
+/// Most nodes per AVSM texel (MAX_NODES in the WGSL).
+pub const MAX_NODES: u32 = 12;
+
+/// Bytes of the shadow maps of `vls` virtual lights.
+pub fn avsm_bytes(vls: u32, face_res: u32, nodes: u32) -> u64 {
+    vls as u64 * 6 * face_res as u64 * face_res as u64 * nodes as u64 * 4
+}
+
+pub struct ManylightPasses {
+    pub layout: wgpu::BindGroupLayout,
+    pub vls: wgpu::ComputePipeline,
+    pub avsm: wgpu::ComputePipeline,
+    pub gather: wgpu::ComputePipeline,
+}
+
+impl ManylightPasses {
+    pub fn new(gpu: &Gpu) -> Self {
+        let device = &gpu.device;
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("manylight"),
+            entries: &[
+                uniform_entry(0),
+                volume_entry(1),
+                storage_entry(2, true),
+                storage_entry(3, true),
+                storage_entry(4, false),
+                storage_entry(5, true),
+                uniform_entry(6),
+                storage_entry(7, false),
+                storage_entry(8, false),
+                wgpu::BindGroupLayoutEntry {
+                    binding: 9,
+                    visibility: wgpu::ShaderStages::COMPUTE,
+                    ty: wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Uniform,
+                        has_dynamic_offset: true,
+                        min_binding_size: wgpu::BufferSize::new(size_of::<GatherChunk>() as u64),
+                    },
+                    count: None,
+                },
+            ],
+        });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("manylight"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let pipeline = |label: &str, source: String| {
+            let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(label),
+                source: wgpu::ShaderSource::Wgsl(source.into()),
+            });
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(label),
+                layout: Some(&pipeline_layout),
+                module: &module,
+                entry_point: Some("main"),
+                compilation_options: Default::default(),
+                cache: None,
+            })
+        };
+        Self {
+            vls: pipeline("manylight vls", crate::shaders::manylight_vls()),
+            avsm: pipeline("manylight avsm", crate::shaders::manylight_avsm()),
+            gather: pipeline("manylight gather", crate::shaders::manylight_gather()),
+            layout,
+        }
+    }
+}

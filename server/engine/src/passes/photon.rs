@@ -1,0 +1,256 @@
+//! The passes of technique `photon` (shaders/photon_*.wgsl): photon tracing
+//! (`photon_trace.wgsl`), the hash-grid build (`photon_grid.wgsl`: clear, count, scan, scatter,
+//! sort) and gathering + compositing (`photon_gather.wgsl`). All share one binding layout
+//! (declared once in `photon_common.wgsl`) and the `#[repr(C)]` records below.
+
+use bytemuck::{Pod, Zeroable};
+
+use super::{storage_entry, uniform_entry, volume_entry};
+use crate::Gpu;
+
+/// Matches `PhotonUniforms` in photon_common.wgsl.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
+pub struct PhotonUniforms {
+    pub grid_dims: [u32; 3],
+    pub cell_count: u32,
+    pub radius: f32,
+    pub kernel_norm: f32,
+    pub majorant: f32,
+    pub gather_step: f32,
+    pub photons_per_pass: u32,
+    pub path_count: u32,
+    pub record_count: u32,
+    pub bounces: u32,
+    pub path_offset: u32,
+    pub dispatch_paths: u32,
+    pub mode: u32,
+    pub segments: u32,
+    pub query_lo: u32,
+    pub query_hi: u32,
+    pub emitter_count: u32,
+    pub spatial: u32,
+}
+
+/// Matches `PhotonRecord`: one stored photon interaction.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
+pub struct PhotonRecord {
+    pub position: [f32; 3],
+    pub cell: u32,
+    pub power: [f32; 3],
+    pub hist_lo: u32,
+    pub direction: [f32; 3],
+    pub hist_hi: u32,
+}
+
+/// Matches `PhotonPath`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
+pub struct PhotonPath {
+    pub count: u32,
+    pub end_lo: u32,
+    pub end_hi: u32,
+    pub pad0: u32,
+}
+
+/// Matches `PhotonEmitter`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
+pub struct PhotonEmitter {
+    pub vector: [f32; 3],
+    pub kind: u32,
+    pub power: [f32; 3],
+    pub cdf: f32,
+}
+
+/// Matches `Segment`: one view-ray segment.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
+pub struct Segment {
+    pub color: [f32; 3],
+    pub transmittance: f32,
+    pub hist_lo: u32,
+    pub hist_hi: u32,
+    pub pad0: u32,
+    pub pad1: u32,
+}
+
+pub const MODE_FULL: u32 = 0;
+pub const MODE_UPDATE: u32 = 1;
+pub const EMIT_DIRECTIONAL: u32 = 0;
+pub const EMIT_POINT: u32 = 1;
+pub const EMIT_ENVIRONMENT: u32 = 2;
+/// `counters` words: retraced paths, changed records, recomputed segments, spatial 3×2; the
+/// dirty-cell bits follow.
+pub const COUNTER_WORDS: usize = 9;
+pub const COUNTER_RETRACED: usize = 0;
+pub const COUNTER_CHANGED: usize = 1;
+pub const COUNTER_SEGMENTS: usize = 2;
+pub const COUNTER_SPATIAL: usize = 3;
+/// `spatial` uniform: how segments learn of changed photons.
+pub const SPATIAL_NONE: u32 = 0;
+pub const SPATIAL_AXES: u32 = 1;
+pub const SPATIAL_CELLS: u32 = 2;
+
+/// Workgroup width of the 1D photon kernels.
+pub const WORKGROUP: u32 = 64;
+
+pub struct PhotonPass {
+    pub layout: wgpu::BindGroupLayout,
+    pub trace: wgpu::ComputePipeline,
+    pub grid_clear: wgpu::ComputePipeline,
+    pub grid_count: wgpu::ComputePipeline,
+    pub grid_scan: wgpu::ComputePipeline,
+    pub grid_scatter: wgpu::ComputePipeline,
+    pub grid_sort: wgpu::ComputePipeline,
+    pub gather: wgpu::ComputePipeline,
+    pub composite: wgpu::ComputePipeline,
+}
+
+/// The buffers and texture of one session.
+pub struct PhotonBindings<'a> {
+    pub scene: &'a wgpu::Buffer,
+    pub volume: &'a wgpu::TextureView,
+    pub tf_lut: &'a wgpu::Buffer,
+    pub uniforms: &'a wgpu::Buffer,
+    pub emitters: &'a wgpu::Buffer,
+    pub records: &'a wgpu::Buffer,
+    pub paths: &'a wgpu::Buffer,
+    pub grid_cells: &'a wgpu::Buffer,
+    pub grid_sorted: &'a wgpu::Buffer,
+    pub segments: &'a wgpu::Buffer,
+    pub accum: &'a wgpu::Buffer,
+    pub counters: &'a wgpu::Buffer,
+}
+
+impl PhotonPass {
+    pub fn new(gpu: &Gpu) -> Self {
+        let device = &gpu.device;
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("photon"),
+            entries: &[
+                uniform_entry(0),
+                volume_entry(1),
+                storage_entry(2, true),
+                uniform_entry(3),
+                storage_entry(4, true),
+                storage_entry(5, false),
+                storage_entry(6, false),
+                storage_entry(7, false),
+                storage_entry(8, false),
+                storage_entry(9, false),
+                storage_entry(10, false),
+                storage_entry(11, false),
+            ],
+        });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("photon"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let module = |label: &str, source: String| {
+            device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(label),
+                source: wgpu::ShaderSource::Wgsl(source.into()),
+            })
+        };
+        let trace = module("photon trace", crate::shaders::photon_trace());
+        let grid = module("photon grid", crate::shaders::photon_grid());
+        let gather = module("photon gather", crate::shaders::photon_gather());
+        let pipeline = |label: &str, module: &wgpu::ShaderModule, entry: &str| {
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(label),
+                layout: Some(&pipeline_layout),
+                module,
+                entry_point: Some(entry),
+                compilation_options: Default::default(),
+                cache: None,
+            })
+        };
+        Self {
+            trace: pipeline("photon trace", &trace, "main"),
+            grid_clear: pipeline("photon grid clear", &grid, "grid_clear"),
+            grid_count: pipeline("photon grid count", &grid, "grid_count"),
+            grid_scan: pipeline("photon grid scan", &grid, "grid_scan"),
+            grid_scatter: pipeline("photon grid scatter", &grid, "grid_scatter"),
+            grid_sort: pipeline("photon grid sort", &grid, "grid_sort"),
+            gather: pipeline("photon gather", &gather, "gather"),
+            composite: pipeline("photon composite", &gather, "composite"),
+            layout,
+        }
+    }
+
+    pub fn bind_group(&self, gpu: &Gpu, b: &PhotonBindings) -> wgpu::BindGroup {
+        let buffers = [
+            (0, b.scene),
+            (2, b.tf_lut),
+            (3, b.uniforms),
+            (4, b.emitters),
+            (5, b.records),
+            (6, b.paths),
+            (7, b.grid_cells),
+            (8, b.grid_sorted),
+            (9, b.segments),
+            (10, b.accum),
+            (11, b.counters),
+        ];
+        let mut entries: Vec<wgpu::BindGroupEntry> = buffers
+            .iter()
+            .map(|&(binding, buffer)| wgpu::BindGroupEntry {
+                binding,
+                resource: buffer.as_entire_binding(),
+            })
+            .collect();
+        entries.push(wgpu::BindGroupEntry {
+            binding: 1,
+            resource: wgpu::BindingResource::TextureView(b.volume),
+        });
+        gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("photon"),
+            layout: &self.layout,
+            entries: &entries,
+        })
+    }
+}
+
+/// Workgroups for `n` invocations of a 64-wide kernel, as a 2D grid within the 65535 limit.
+pub fn linear_groups(n: u32) -> (u32, u32) {
+    let groups = n.div_ceil(WORKGROUP).max(1);
+    let x = groups.min(65535);
+    (x, groups.div_ceil(x))
+}
+
+/// One compute pass of `pipeline` over `n` invocations (1D kernels of photon_*.wgsl).
+pub fn dispatch_linear(
+    encoder: &mut wgpu::CommandEncoder,
+    label: &str,
+    pipeline: &wgpu::ComputePipeline,
+    bind_group: &wgpu::BindGroup,
+    n: u32,
+) {
+    let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+        label: Some(label),
+        timestamp_writes: None,
+    });
+    pass.set_pipeline(pipeline);
+    pass.set_bind_group(0, bind_group, &[]);
+    let (x, y) = linear_groups(n);
+    pass.dispatch_workgroups(x, y, 1);
+}
+
+/// One workgroup of `pipeline` (the grid scan).
+pub fn dispatch_single(
+    encoder: &mut wgpu::CommandEncoder,
+    label: &str,
+    pipeline: &wgpu::ComputePipeline,
+    bind_group: &wgpu::BindGroup,
+) {
+    let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+        label: Some(label),
+        timestamp_writes: None,
+    });
+    pass.set_pipeline(pipeline);
+    pass.set_bind_group(0, bind_group, &[]);
+    pass.dispatch_workgroups(1, 1, 1);
+}

@@ -1,0 +1,400 @@
+//! Technique `manylight` (Weber et al. 2013, ../shared/papers/many-light-transmittance-caching.txt):
+//! single scattering from the real lights by the `raymarch` estimator, plus multiple scattering
+//! gathered from virtual spherical lights (VSLs) left by random walks from the lights, with the
+//! transmittance from each VSL read from its adaptive volumetric shadow map (AVSM) or, as the
+//! baseline, ray marched. The VSLs and AVSMs are built when the session starts and rebuilt
+//! after edits of the TF, lights or parameters; iterations then refine the picture (pixel and
+//! scattering-location jitter) with the same virtual lights.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use crate::passes::manylight::{
+    CHUNK_STRIDE, GatherChunk, MAX_NODES, ManylightParams, TransmittanceMode, VirtualLight,
+    avsm_bytes, gather_chunk,
+};
+use crate::technique::{StepReport, Technique, TechniqueStats};
+use crate::techniques::progressive::{Estimator, Progressive};
+use crate::{Change, Engine, EngineError, GpuVolume, Scene};
+
+/// The knobs of `manylight`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ManylightConfig {
+    /// Light paths traced; each leaves at most `vls_per_path` virtual lights.
+    pub paths: u32,
+    pub vls_per_path: u32,
+    /// AVSM texels per cube-face edge (the paper: 40–48).
+    pub face_res: u32,
+    /// AVSM nodes per texel (the paper: 8–12).
+    pub nodes: u32,
+    pub mode: TransmittanceMode,
+    /// VSL radius in world units (the volume's longest side is 1).
+    pub vsl_radius: f32,
+}
+
+impl Default for ManylightConfig {
+    /// Sized for interactive use on a software adapter; a GPU server can afford the paper's
+    /// 1000 VLs at 48² × 8.
+    fn default() -> Self {
+        Self {
+            paths: 64,
+            vls_per_path: 4,
+            face_res: 16,
+            nodes: 8,
+            mode: TransmittanceMode::AvsmTrilinear,
+            vsl_radius: 0.03,
+        }
+    }
+}
+
+impl ManylightConfig {
+    pub fn vl_count(&self) -> u32 {
+        self.paths * self.vls_per_path
+    }
+}
+
+/// How long the last rebuild of the virtual lights and their shadow maps took.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct BuildTimes {
+    pub vls: Duration,
+    pub avsm: Duration,
+}
+
+pub struct Manylight {
+    base: Progressive,
+    config: ManylightConfig,
+    params: wgpu::Buffer,
+    vls: wgpu::Buffer,
+    avsm: wgpu::Buffer,
+    /// Gather chunk descriptors, one per `CHUNK_STRIDE`.
+    chunks: wgpu::Buffer,
+    bind_group: wgpu::BindGroup,
+    /// The virtual lights and shadow maps no longer match the scene.
+    stale: bool,
+    pub last_build: BuildTimes,
+}
+
+impl Manylight {
+    pub fn new(
+        engine: &Engine,
+        volume: Arc<GpuVolume>,
+        scene: &Scene,
+        config: ManylightConfig,
+    ) -> Result<Self, EngineError> {
+        if config.paths == 0
+            || config.vls_per_path == 0
+            || config.face_res == 0
+            || !(2..=MAX_NODES).contains(&config.nodes)
+            || !config.vsl_radius.is_finite()
+            || config.vsl_radius <= 0.0
+        {
+            return Err(EngineError::InvalidScene(format!(
+                "manylight: bad configuration {config:?}"
+            )));
+        }
+        let shadow_bytes = avsm_bytes(config.vl_count(), config.face_res, config.nodes);
+        let binding_limit = engine.gpu.limits.max_storage_buffer_binding_size;
+        // Shadow maps are one storage binding; the build dispatches one z layer per light.
+        if shadow_bytes > binding_limit {
+            return Err(EngineError::OutOfMemory {
+                needed: shadow_bytes,
+                available: binding_limit,
+            });
+        }
+        if config.vl_count() > 65535 {
+            return Err(EngineError::InvalidScene(format!(
+                "manylight: {} virtual lights, at most 65535",
+                config.vl_count()
+            )));
+        }
+        let base = Progressive::new(engine, Estimator::Raymarch, volume, scene)?;
+        let device = &engine.gpu.device;
+        let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: size.max(16),
+                usage: usage | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
+        };
+        let params = buffer(
+            "manylight params",
+            size_of::<ManylightParams>() as u64,
+            wgpu::BufferUsages::UNIFORM,
+        );
+        let vls = buffer(
+            "manylight virtual lights",
+            config.vl_count() as u64 * size_of::<VirtualLight>() as u64,
+            wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+        );
+        let avsm = buffer("manylight avsm", shadow_bytes, wgpu::BufferUsages::STORAGE);
+        let most_chunks = config
+            .vl_count()
+            .div_ceil(gather_chunk(TransmittanceMode::RayMarched));
+        let chunks = buffer(
+            "manylight gather chunks",
+            most_chunks as u64 * CHUNK_STRIDE,
+            wgpu::BufferUsages::UNIFORM,
+        );
+        let bind_group = bind_group(engine, &base, &params, &vls, &avsm, &chunks);
+        let mut technique = Self {
+            base,
+            config,
+            params,
+            vls,
+            avsm,
+            chunks,
+            bind_group,
+            stale: true,
+            last_build: BuildTimes::default(),
+        };
+        technique.write_params(engine, scene);
+        Ok(technique)
+    }
+
+    pub fn config(&self) -> ManylightConfig {
+        self.config
+    }
+
+    /// Switches how transmittance from the virtual lights is found (the picture restarts).
+    pub fn set_mode(&mut self, engine: &Engine, scene: &Scene, mode: TransmittanceMode) {
+        self.config.mode = mode;
+        self.write_params(engine, scene);
+        self.base.restart();
+    }
+
+    fn write_params(&mut self, engine: &Engine, scene: &Scene) {
+        let params = ManylightParams {
+            paths: self.config.paths,
+            vls_per_path: self.config.vls_per_path,
+            face_res: self.config.face_res,
+            nodes: self.config.nodes,
+            mode: self.config.mode as u32,
+            seed: scene.seed,
+            vsl_radius: self.config.vsl_radius,
+            built_density: scene.params.density_scale,
+        };
+        let queue = &engine.gpu.queue;
+        queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+        let size = gather_chunk(self.config.mode);
+        for c in 0..self.chunk_count() {
+            let chunk = GatherChunk {
+                first: c * size,
+                count: size,
+                pad0: 0,
+                pad1: 0,
+            };
+            queue.write_buffer(
+                &self.chunks,
+                c as u64 * CHUNK_STRIDE,
+                bytemuck::bytes_of(&chunk),
+            );
+        }
+    }
+
+    fn chunk_count(&self) -> u32 {
+        self.config
+            .vl_count()
+            .div_ceil(gather_chunk(self.config.mode))
+    }
+
+    /// Traces the virtual lights and builds their shadow maps now, timing each on its own.
+    pub fn rebuild(&mut self, engine: &Engine, scene: &Scene) -> Result<BuildTimes, EngineError> {
+        self.write_params(engine, scene);
+        // The passes read the scene uniforms of the next iteration.
+        let mut encoder = self.encoder(engine, "manylight build");
+        self.base.encode_uniforms(engine, scene)?;
+        let started = Instant::now();
+        {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("manylight vls"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&engine.manylight.vls);
+            pass.set_bind_group(0, &self.bind_group, &[0]);
+            pass.dispatch_workgroups(self.config.paths.div_ceil(64), 1, 1);
+        }
+        engine.gpu.queue.submit([encoder.finish()]);
+        engine.gpu.wait_idle()?;
+        let vls = started.elapsed();
+        let started = Instant::now();
+        let mut encoder = self.encoder(engine, "manylight avsm");
+        {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("manylight avsm"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&engine.manylight.avsm);
+            pass.set_bind_group(0, &self.bind_group, &[0]);
+            let r = self.config.face_res;
+            pass.dispatch_workgroups(r.div_ceil(8), (6 * r).div_ceil(8), self.config.vl_count());
+        }
+        engine.gpu.queue.submit([encoder.finish()]);
+        engine.gpu.wait_idle()?;
+        self.last_build = BuildTimes {
+            vls,
+            avsm: started.elapsed(),
+        };
+        self.stale = false;
+        Ok(self.last_build)
+    }
+
+    fn encoder(&self, engine: &Engine, label: &str) -> wgpu::CommandEncoder {
+        engine
+            .gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) })
+    }
+
+    /// One iteration: the raymarch estimator's single scattering, then the gather pass.
+    fn iterate(&mut self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
+        let mut encoder = self.encoder(engine, "manylight iteration");
+        self.base.encode_next(engine, scene, &mut encoder)?;
+        let (width, height) = self.base.size();
+        let tile = crate::passes::TILE;
+        for c in 0..self.chunk_count() {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("manylight gather"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&engine.manylight.gather);
+            pass.set_bind_group(0, &self.bind_group, &[(c as u64 * CHUNK_STRIDE) as u32]);
+            pass.dispatch_workgroups(width.div_ceil(tile), height.div_ceil(tile), 1);
+        }
+        engine.gpu.queue.submit([encoder.finish()]);
+        self.base.advance();
+        Ok(())
+    }
+
+    /// The virtual lights as traced (for tests).
+    pub fn read_virtual_lights(&self, engine: &Engine) -> Result<Vec<VirtualLight>, EngineError> {
+        let bytes = engine.gpu.read_buffer(&self.vls)?;
+        Ok(bytemuck::cast_slice(&bytes).to_vec())
+    }
+}
+
+fn bind_group(
+    engine: &Engine,
+    base: &Progressive,
+    params: &wgpu::Buffer,
+    vls: &wgpu::Buffer,
+    avsm: &wgpu::Buffer,
+    chunks: &wgpu::Buffer,
+) -> wgpu::BindGroup {
+    let b = base.bindings();
+    fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
+        wgpu::BindGroupEntry {
+            binding,
+            resource: buffer.as_entire_binding(),
+        }
+    }
+    engine
+        .gpu
+        .device
+        .create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("manylight"),
+            layout: &engine.manylight.layout,
+            entries: &[
+                entry(0, b.scene),
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: wgpu::BindingResource::TextureView(b.volume),
+                },
+                entry(2, b.tf_lut),
+                entry(3, b.lights),
+                entry(4, b.accum),
+                entry(5, b.cell_max_opacity),
+                entry(6, params),
+                entry(7, vls),
+                entry(8, avsm),
+                wgpu::BindGroupEntry {
+                    binding: 9,
+                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                        buffer: chunks,
+                        offset: 0,
+                        size: wgpu::BufferSize::new(size_of::<GatherChunk>() as u64),
+                    }),
+                },
+            ],
+        })
+}
+
+impl Technique for Manylight {
+    fn name(&self) -> &'static str {
+        "manylight"
+    }
+
+    fn apply(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        change: &Change,
+    ) -> Result<(), EngineError> {
+        self.base.apply(engine, scene, change)?;
+        match change {
+            Change::Viewport => {
+                self.bind_group = bind_group(
+                    engine,
+                    &self.base,
+                    &self.params,
+                    &self.vls,
+                    &self.avsm,
+                    &self.chunks,
+                );
+            }
+            // New lights, medium or phase function: new light paths and shadow maps.
+            Change::Tf { .. } | Change::Lights | Change::Params => self.stale = true,
+            Change::Camera | Change::Iterations => {}
+        }
+        Ok(())
+    }
+
+    fn step(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        budget: Duration,
+    ) -> Result<StepReport, EngineError> {
+        let started = Instant::now();
+        let target = scene.target_iterations;
+        if self.stale && self.base.iteration() < target {
+            self.rebuild(engine, scene)?;
+        }
+        let mut done = 0;
+        while self.base.iteration() < target {
+            self.iterate(engine, scene)?;
+            done += 1;
+            engine.gpu.wait_idle()?;
+            if budget.is_zero() || started.elapsed() >= budget {
+                break;
+            }
+        }
+        Ok(StepReport {
+            iterations_done: done,
+            iteration: self.base.iteration(),
+            converged: self.base.iteration() >= target,
+            gpu_time: started.elapsed(),
+        })
+    }
+
+    fn output(&self) -> &wgpu::Buffer {
+        self.base.output()
+    }
+
+    fn iteration(&self) -> u32 {
+        self.base.iteration()
+    }
+
+    fn stats(&self) -> TechniqueStats {
+        let base = self.base.stats();
+        TechniqueStats {
+            name: self.name(),
+            memory_bytes: base.memory_bytes
+                + self.vls.size()
+                + self.avsm.size()
+                + self.params.size()
+                + self.chunks.size(),
+            ..base
+        }
+    }
+}

@@ -1,0 +1,867 @@
+//! Technique `photon`: volumetric photon mapping with historygrams (Jönsson et al. 2012).
+//!
+//! Each progressive pass traces `photons_per_pass` more photon paths (shaders/photon_trace.wgsl)
+//! into a buffer of `bounces` records per path, rebuilds the hash grid over every record
+//! (photon_grid.wgsl) and gathers every view-ray segment from all photons so far
+//! (photon_gather.wgsl), then composites the segments into the HDR output.
+//!
+//! A TF edit (`Change::Tf`) does not start over: paths whose historygram meets the query
+//! historygram are retraced from their last unaffected interaction, the grid is rebuilt, and
+//! only segments whose own historygram meets the query, or that a changed photon can reach
+//! (spatial historygram, 3×64 bits; or any change when that option is off), are gathered
+//! again. Because the random numbers of interaction k of path p depend only on (seed, p, k),
+//! the grid orders each cell by record index, and the gather of a segment depends only on its
+//! samples and the photons within reach, the result equals a full recompute bit for bit.
+//!
+//! A camera edit keeps the photons (they do not depend on the camera) and gathers again.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use voxlight_protocol::Light;
+
+use crate::passes::photon::{
+    COUNTER_CHANGED, COUNTER_RETRACED, COUNTER_SEGMENTS, COUNTER_SPATIAL, COUNTER_WORDS,
+    EMIT_DIRECTIONAL, EMIT_ENVIRONMENT, EMIT_POINT, MODE_FULL, MODE_UPDATE, PhotonBindings,
+    PhotonEmitter, PhotonPath, PhotonRecord, PhotonUniforms, SPATIAL_AXES, SPATIAL_CELLS,
+    SPATIAL_NONE, Segment, dispatch_linear, dispatch_single,
+};
+use crate::scene_gpu::{SceneUniforms, default_step};
+use crate::technique::{StepReport, Technique, TechniqueStats};
+use crate::tf::{TF_LUT_SIZE, bake};
+use crate::{Change, Engine, EngineError, GpuVolume, Scene};
+
+/// Parameters of the photon map (the paper's Pn, Sn, Vn and the gather radius).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PhotonParams {
+    /// Photon paths traced per progressive pass.
+    pub photons_per_pass: u32,
+    /// Passes after which the picture is converged (also capped by the scene's iterations).
+    pub max_passes: u32,
+    /// Scattering events stored per path (Sn): 1 = single scattering.
+    pub bounces: u32,
+    /// Gather radius (= hash-grid cell edge) in world units; 0 picks 2.5 voxel edges.
+    pub radius: f32,
+    /// View-ray segments per pixel (Vn).
+    pub segments: u32,
+    /// View-ray march step in voxel edges.
+    pub gather_step_voxels: f32,
+    /// How a view-ray segment learns that photons within its reach changed (its own
+    /// historygram covers only its samples' data values). Every choice keeps the update exact;
+    /// they differ in how many segments they recompute.
+    pub invalidation: Invalidation,
+}
+
+/// How segments detect changed photons after a TF edit.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Invalidation {
+    /// Any changed photon makes every segment stale (data historygrams alone, made exact).
+    AnyPhoton,
+    /// The paper's spatial historygram: 3×64 bits, one 64-bin mask per axis of the positions of
+    /// changed photons; a segment is stale when its box grown by the radius meets all three.
+    SpatialHistogram,
+    /// A dirty bit per hash-grid cell (dilated by one cell): a segment is stale when one of its
+    /// samples lies in a dirty cell. Finer than the paper's; costs cells/8 bytes.
+    DirtyCells,
+}
+
+impl Invalidation {
+    pub fn name(self) -> &'static str {
+        match self {
+            Invalidation::AnyPhoton => "any-photon",
+            Invalidation::SpatialHistogram => "spatial-3x64",
+            Invalidation::DirtyCells => "dirty-cells",
+        }
+    }
+
+    fn uniform(self) -> u32 {
+        match self {
+            Invalidation::AnyPhoton => SPATIAL_NONE,
+            Invalidation::SpatialHistogram => SPATIAL_AXES,
+            Invalidation::DirtyCells => SPATIAL_CELLS,
+        }
+    }
+}
+
+impl Default for PhotonParams {
+    fn default() -> Self {
+        Self {
+            photons_per_pass: 16384,
+            max_passes: 8,
+            bounces: 2,
+            radius: 0.0,
+            segments: 8,
+            gather_step_voxels: 1.0,
+            invalidation: Invalidation::DirtyCells,
+        }
+    }
+}
+
+/// What one incremental TF update did.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct UpdateReport {
+    pub paths: u64,
+    pub paths_retraced: u64,
+    pub records_changed: u64,
+    pub segments: u64,
+    pub segments_recomputed: u64,
+    /// Spatial historygram after the update: x, y, z masks.
+    pub spatial: [u64; 3],
+}
+
+impl UpdateReport {
+    pub fn photons_retraced_pct(&self) -> f64 {
+        100.0 * self.paths_retraced as f64 / self.paths.max(1) as f64
+    }
+
+    pub fn segments_recomputed_pct(&self) -> f64 {
+        100.0 * self.segments_recomputed as f64 / self.segments.max(1) as f64
+    }
+}
+
+/// The GPU state read back, for comparisons.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PhotonState {
+    pub records: Vec<PhotonRecord>,
+    pub paths: Vec<PhotonPath>,
+    pub segments: Vec<Segment>,
+    /// Per pixel: radiance rgb, w = 1.
+    pub hdr: Vec<[f32; 4]>,
+    /// The hash grid: cell starts (and cursors), then the record indices sorted by cell.
+    pub grid_cells: Vec<u32>,
+    pub grid_sorted: Vec<u32>,
+}
+
+/// Sizes of one session's buffers (bytes), computed before anything is allocated.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PhotonBudget {
+    pub paths: u64,
+    pub records: u64,
+    pub cells: u64,
+    pub grid_dims: [u32; 3],
+    pub radius: f32,
+    pub record_bytes: u64,
+    pub path_bytes: u64,
+    pub grid_cell_bytes: u64,
+    pub grid_sorted_bytes: u64,
+    pub segment_bytes: u64,
+    pub accum_bytes: u64,
+    /// Counters plus one dirty bit per grid cell.
+    pub counter_bytes: u64,
+    pub total: u64,
+}
+
+/// Largest hash grid (cells) a session may build.
+pub const MAX_GRID_CELLS: u64 = 1 << 22;
+
+impl PhotonBudget {
+    pub fn new(
+        params: &PhotonParams,
+        volume: &GpuVolume,
+        width: u32,
+        height: u32,
+        max_passes: u32,
+    ) -> Result<Self, EngineError> {
+        let invalid = |m: String| Err(EngineError::InvalidScene(m));
+        if params.photons_per_pass == 0 || params.bounces == 0 || params.segments == 0 {
+            return invalid(
+                "photon: photons_per_pass, bounces and segments must be positive".into(),
+            );
+        }
+        if !(params.gather_step_voxels.is_finite() && params.gather_step_voxels > 0.0) {
+            return invalid("photon: gather_step_voxels must be positive".into());
+        }
+        let voxel = 2.0 * default_step(volume);
+        let radius = if params.radius > 0.0 && params.radius.is_finite() {
+            params.radius
+        } else {
+            2.5 * voxel
+        };
+        let grid_dims = volume.extent.map(|e| ((e / radius).ceil() as u32).max(1));
+        let cells = grid_dims.iter().map(|&d| d as u64).product::<u64>();
+        if cells > MAX_GRID_CELLS {
+            return invalid(format!(
+                "photon: radius {radius} makes a {}×{}×{} grid, more than {MAX_GRID_CELLS} cells",
+                grid_dims[0], grid_dims[1], grid_dims[2]
+            ));
+        }
+        let paths = params.photons_per_pass as u64 * max_passes.max(1) as u64;
+        let records = paths * params.bounces as u64;
+        let pixels = width as u64 * height as u64;
+        let record_bytes = records * size_of::<PhotonRecord>() as u64;
+        let path_bytes = paths * size_of::<PhotonPath>() as u64;
+        let grid_cell_bytes = (2 * cells + 1) * 4;
+        // Sorted indices, then the scatter's scratch.
+        let grid_sorted_bytes = 2 * records * 4;
+        let segment_bytes = pixels * params.segments as u64 * size_of::<Segment>() as u64;
+        let accum_bytes = pixels * 16;
+        let counter_bytes = (COUNTER_WORDS as u64 + cells.div_ceil(32)) * 4;
+        let small = (TF_LUT_SIZE * 16
+            + size_of::<SceneUniforms>()
+            + size_of::<PhotonUniforms>()
+            + 8 * size_of::<PhotonEmitter>()) as u64;
+        let total = counter_bytes
+            + record_bytes
+            + path_bytes
+            + grid_cell_bytes
+            + grid_sorted_bytes
+            + segment_bytes
+            + accum_bytes
+            + small;
+        Ok(Self {
+            paths,
+            records,
+            cells,
+            grid_dims,
+            radius,
+            record_bytes,
+            path_bytes,
+            grid_cell_bytes,
+            grid_sorted_bytes,
+            segment_bytes,
+            accum_bytes,
+            counter_bytes,
+            total,
+        })
+    }
+
+    /// Refuses sizes this GPU or the session budget cannot hold (before any allocation).
+    pub fn check(&self, engine: &Engine) -> Result<(), EngineError> {
+        let limits = &engine.gpu.limits;
+        let binding = limits
+            .max_storage_buffer_binding_size
+            .min(limits.max_buffer_size);
+        let largest = [
+            self.record_bytes,
+            self.path_bytes,
+            self.grid_cell_bytes,
+            self.grid_sorted_bytes,
+            self.segment_bytes,
+            self.accum_bytes,
+            self.counter_bytes,
+        ]
+        .into_iter()
+        .max()
+        .unwrap_or(0);
+        if largest > binding {
+            return Err(EngineError::OutOfMemory {
+                needed: largest,
+                available: binding,
+            });
+        }
+        if self.records > u32::MAX as u64 / 2 {
+            return Err(EngineError::OutOfMemory {
+                needed: self.record_bytes,
+                available: binding,
+            });
+        }
+        if self.total > engine.session_budget {
+            return Err(EngineError::OutOfMemory {
+                needed: self.total,
+                available: engine.session_budget,
+            });
+        }
+        Ok(())
+    }
+}
+
+pub struct Photon {
+    params: PhotonParams,
+    budget: PhotonBudget,
+    volume: Arc<GpuVolume>,
+    scene_buf: wgpu::Buffer,
+    tf_lut: wgpu::Buffer,
+    uniforms: wgpu::Buffer,
+    emitters: wgpu::Buffer,
+    records: wgpu::Buffer,
+    paths: wgpu::Buffer,
+    grid_cells: wgpu::Buffer,
+    grid_sorted: wgpu::Buffer,
+    segments: wgpu::Buffer,
+    accum: wgpu::Buffer,
+    counters: wgpu::Buffer,
+    bind_group: wgpu::BindGroup,
+    emitter_count: u32,
+    width: u32,
+    height: u32,
+    /// Photon passes in the map.
+    passes: u32,
+    /// Passes the buffers hold.
+    capacity: u32,
+    photons_traced: u64,
+    last_update: Option<UpdateReport>,
+}
+
+impl Photon {
+    pub fn new(
+        engine: &Engine,
+        volume: Arc<GpuVolume>,
+        scene: &Scene,
+        params: PhotonParams,
+    ) -> Result<Self, EngineError> {
+        let (width, height) = (scene.viewport.width, scene.viewport.height);
+        let capacity = params.max_passes.max(1).min(scene.target_iterations.max(1));
+        let budget = PhotonBudget::new(&params, &volume, width, height, capacity)?;
+        budget.check(engine)?;
+        let device = &engine.gpu.device;
+        let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: size.max(16),
+                usage: usage | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
+        };
+        use wgpu::BufferUsages as U;
+        let scene_buf = buffer(
+            "photon scene",
+            size_of::<SceneUniforms>() as u64,
+            U::UNIFORM,
+        );
+        let tf_lut = buffer("photon tf lut", (TF_LUT_SIZE * 16) as u64, U::STORAGE);
+        let uniforms = buffer(
+            "photon uniforms",
+            size_of::<PhotonUniforms>() as u64,
+            U::UNIFORM,
+        );
+        let emitters = buffer(
+            "photon emitters",
+            (8 * size_of::<PhotonEmitter>()) as u64,
+            U::STORAGE,
+        );
+        let records = buffer(
+            "photon records",
+            budget.record_bytes,
+            U::STORAGE | U::COPY_SRC,
+        );
+        let paths = buffer("photon paths", budget.path_bytes, U::STORAGE | U::COPY_SRC);
+        let grid_cells = buffer(
+            "photon grid cells",
+            budget.grid_cell_bytes,
+            U::STORAGE | U::COPY_SRC,
+        );
+        let grid_sorted = buffer(
+            "photon grid sorted",
+            budget.grid_sorted_bytes,
+            U::STORAGE | U::COPY_SRC,
+        );
+        let segments = buffer(
+            "photon segments",
+            budget.segment_bytes,
+            U::STORAGE | U::COPY_SRC,
+        );
+        let accum = buffer("photon accum", budget.accum_bytes, U::STORAGE | U::COPY_SRC);
+        let counters = buffer(
+            "photon counters",
+            budget.counter_bytes,
+            U::STORAGE | U::COPY_SRC,
+        );
+        let bind_group = engine.photon.bind_group(
+            &engine.gpu,
+            &PhotonBindings {
+                scene: &scene_buf,
+                volume: &volume.view,
+                tf_lut: &tf_lut,
+                uniforms: &uniforms,
+                emitters: &emitters,
+                records: &records,
+                paths: &paths,
+                grid_cells: &grid_cells,
+                grid_sorted: &grid_sorted,
+                segments: &segments,
+                accum: &accum,
+                counters: &counters,
+            },
+        );
+        let mut technique = Self {
+            params,
+            budget,
+            volume,
+            scene_buf,
+            tf_lut,
+            uniforms,
+            emitters,
+            records,
+            paths,
+            grid_cells,
+            grid_sorted,
+            segments,
+            accum,
+            counters,
+            bind_group,
+            emitter_count: 0,
+            width,
+            height,
+            passes: 0,
+            capacity,
+            photons_traced: 0,
+            last_update: None,
+        };
+        technique.write_tf(engine, scene);
+        technique.write_emitters(engine, scene);
+        // The picture before the first pass: the environment through the volume is not known
+        // yet, so show black.
+        engine.gpu.check()?;
+        Ok(technique)
+    }
+
+    pub fn params(&self) -> &PhotonParams {
+        &self.params
+    }
+
+    pub fn budget(&self) -> &PhotonBudget {
+        &self.budget
+    }
+
+    /// Photon passes in the map.
+    pub fn passes(&self) -> u32 {
+        self.passes
+    }
+
+    pub fn last_update(&self) -> Option<UpdateReport> {
+        self.last_update
+    }
+
+    fn target(&self, scene: &Scene) -> u32 {
+        self.capacity.min(scene.target_iterations.max(1))
+    }
+
+    fn write_tf(&self, engine: &Engine, scene: &Scene) {
+        let lut = bake(&scene.tf);
+        engine
+            .gpu
+            .queue
+            .write_buffer(&self.tf_lut, 0, bytemuck::cast_slice(&lut));
+    }
+
+    fn write_emitters(&mut self, engine: &Engine, scene: &Scene) {
+        let emitters = emitters(&scene.lights, &self.volume, self.params.photons_per_pass);
+        self.emitter_count = emitters.len() as u32;
+        engine
+            .gpu
+            .queue
+            .write_buffer(&self.emitters, 0, bytemuck::cast_slice(&emitters));
+    }
+
+    fn write_scene(&self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
+        let uniforms = SceneUniforms::new(scene, &self.volume, self.passes)
+            .map_err(EngineError::InvalidScene)?;
+        engine
+            .gpu
+            .queue
+            .write_buffer(&self.scene_buf, 0, bytemuck::bytes_of(&uniforms));
+        Ok(())
+    }
+
+    fn write_uniforms(
+        &self,
+        engine: &Engine,
+        scene: &Scene,
+        mode: u32,
+        path_offset: u32,
+        dispatch_paths: u32,
+        query: u64,
+    ) {
+        let r = self.budget.radius;
+        let path_count = self.passes * self.params.photons_per_pass;
+        let uniforms = PhotonUniforms {
+            grid_dims: self.budget.grid_dims,
+            cell_count: self.budget.cells as u32,
+            radius: r,
+            kernel_norm: 15.0
+                / (8.0 * std::f32::consts::PI * r * r * r)
+                / self.passes.max(1) as f32,
+            majorant: scene.params.density_scale,
+            gather_step: 2.0 * default_step(&self.volume) * self.params.gather_step_voxels,
+            photons_per_pass: self.params.photons_per_pass,
+            path_count,
+            record_count: path_count * self.params.bounces,
+            bounces: self.params.bounces,
+            path_offset,
+            dispatch_paths,
+            mode,
+            segments: self.params.segments,
+            query_lo: query as u32,
+            query_hi: (query >> 32) as u32,
+            emitter_count: self.emitter_count,
+            spatial: self.params.invalidation.uniform(),
+        };
+        engine
+            .gpu
+            .queue
+            .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&uniforms));
+    }
+
+    fn encoder(engine: &Engine, label: &str) -> wgpu::CommandEncoder {
+        engine
+            .gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) })
+    }
+
+    /// Traces paths [offset, offset + count) (MODE_FULL) or checks and retraces every path in
+    /// the map (MODE_UPDATE), in its own submission (the uniforms differ from the gather's).
+    fn trace(
+        &self,
+        engine: &Engine,
+        scene: &Scene,
+        mode: u32,
+        offset: u32,
+        count: u32,
+        query: u64,
+    ) {
+        if count == 0 {
+            return;
+        }
+        self.write_uniforms(engine, scene, mode, offset, count, query);
+        let mut encoder = Self::encoder(engine, "photon trace");
+        dispatch_linear(
+            &mut encoder,
+            "photon trace",
+            &engine.photon.trace,
+            &self.bind_group,
+            count,
+        );
+        engine.gpu.queue.submit([encoder.finish()]);
+    }
+
+    /// Rebuilds the grid over every record, gathers segments (all in MODE_FULL, stale ones in
+    /// MODE_UPDATE) and composites.
+    fn grid_and_gather(&self, engine: &Engine, scene: &Scene, mode: u32, query: u64) {
+        self.write_uniforms(engine, scene, mode, 0, 0, query);
+        let pass = &engine.photon;
+        let bg = &self.bind_group;
+        let mut encoder = Self::encoder(engine, "photon grid and gather");
+        let cells = self.budget.cells as u32;
+        let records = self.passes * self.params.photons_per_pass * self.params.bounces;
+        dispatch_linear(
+            &mut encoder,
+            "photon grid clear",
+            &pass.grid_clear,
+            bg,
+            cells,
+        );
+        dispatch_linear(
+            &mut encoder,
+            "photon grid count",
+            &pass.grid_count,
+            bg,
+            records,
+        );
+        dispatch_single(&mut encoder, "photon grid scan", &pass.grid_scan, bg);
+        dispatch_linear(
+            &mut encoder,
+            "photon grid scatter",
+            &pass.grid_scatter,
+            bg,
+            records,
+        );
+        dispatch_linear(
+            &mut encoder,
+            "photon grid sort",
+            &pass.grid_sort,
+            bg,
+            records,
+        );
+        let pixels = self.width * self.height;
+        dispatch_linear(
+            &mut encoder,
+            "photon gather",
+            &pass.gather,
+            bg,
+            pixels * self.params.segments,
+        );
+        dispatch_linear(
+            &mut encoder,
+            "photon composite",
+            &pass.composite,
+            bg,
+            pixels,
+        );
+        engine.gpu.queue.submit([encoder.finish()]);
+    }
+
+    /// One progressive pass: more photons, then every segment gathered from all of them.
+    fn add_pass(&mut self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
+        let p = self.params.photons_per_pass;
+        let offset = self.passes * p;
+        self.passes += 1;
+        self.write_scene(engine, scene)?;
+        self.trace(engine, scene, MODE_FULL, offset, p, 0);
+        self.grid_and_gather(engine, scene, MODE_FULL, 0);
+        self.photons_traced += p as u64;
+        Ok(())
+    }
+
+    /// Recomputes everything from scratch with `passes` photon passes (the reference an
+    /// incremental update is compared with). Blocks until the GPU is done.
+    pub fn recompute(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        passes: u32,
+    ) -> Result<(), EngineError> {
+        self.passes = passes.min(self.capacity);
+        self.write_tf(engine, scene);
+        self.write_emitters(engine, scene);
+        self.write_scene(engine, scene)?;
+        let paths = self.passes * self.params.photons_per_pass;
+        self.trace(engine, scene, MODE_FULL, 0, paths, 0);
+        self.grid_and_gather(engine, scene, MODE_FULL, 0);
+        self.photons_traced += paths as u64;
+        engine.gpu.wait_idle()
+    }
+
+    /// The incremental update after a TF edit (`scene` holds the new TF). Blocks until done.
+    pub fn update_tf(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        query_historygram: u64,
+    ) -> Result<UpdateReport, EngineError> {
+        self.write_tf(engine, scene);
+        let paths = self.passes * self.params.photons_per_pass;
+        let segments = self.width as u64 * self.height as u64 * self.params.segments as u64;
+        if query_historygram == 0 || self.passes == 0 {
+            let report = UpdateReport {
+                paths: paths as u64,
+                segments,
+                ..UpdateReport::default()
+            };
+            self.last_update = Some(report);
+            return Ok(report);
+        }
+        // Interpolation between LUT entries can reach one bin further than the query's own
+        // rounding; widening it by one bin on each side keeps the update exact at the edges.
+        let query = query_historygram | (query_historygram << 1) | (query_historygram >> 1);
+        engine.gpu.queue.write_buffer(
+            &self.counters,
+            0,
+            &vec![0u8; self.budget.counter_bytes as usize],
+        );
+        self.write_scene(engine, scene)?;
+        self.trace(engine, scene, MODE_UPDATE, 0, paths, query);
+        self.grid_and_gather(engine, scene, MODE_UPDATE, query);
+        let bytes = engine.gpu.read_buffer(&self.counters)?;
+        let words: &[u32] = bytemuck::try_cast_slice(&bytes)
+            .map_err(|e| EngineError::Gpu(format!("photon counters readback: {e}")))?;
+        let mask = |axis: usize| {
+            words[COUNTER_SPATIAL + 2 * axis] as u64
+                | (words[COUNTER_SPATIAL + 2 * axis + 1] as u64) << 32
+        };
+        let report = UpdateReport {
+            paths: paths as u64,
+            paths_retraced: words[COUNTER_RETRACED] as u64,
+            records_changed: words[COUNTER_CHANGED] as u64,
+            segments,
+            segments_recomputed: words[COUNTER_SEGMENTS] as u64,
+            spatial: [mask(0), mask(1), mask(2)],
+        };
+        self.photons_traced += report.paths_retraced;
+        self.last_update = Some(report);
+        Ok(report)
+    }
+
+    /// Reads back the photon map, the segments and the picture.
+    pub fn read_state(&self, engine: &Engine) -> Result<PhotonState, EngineError> {
+        let records = engine.gpu.read_buffer(&self.records)?;
+        let paths = engine.gpu.read_buffer(&self.paths)?;
+        let segments = engine.gpu.read_buffer(&self.segments)?;
+        let hdr = engine.gpu.read_buffer(&self.accum)?;
+        let grid_cells = engine.gpu.read_buffer(&self.grid_cells)?;
+        let grid_sorted = engine.gpu.read_buffer(&self.grid_sorted)?;
+        let cast = |what: &str| EngineError::Gpu(format!("photon {what} readback has an odd size"));
+        let n_records = (self.passes * self.params.photons_per_pass * self.params.bounces) as usize;
+        let n_paths = (self.passes * self.params.photons_per_pass) as usize;
+        let pixels = (self.width * self.height) as usize;
+        Ok(PhotonState {
+            records: bytemuck::try_cast_slice::<u8, PhotonRecord>(&records)
+                .map_err(|_| cast("records"))?[..n_records]
+                .to_vec(),
+            paths: bytemuck::try_cast_slice::<u8, PhotonPath>(&paths).map_err(|_| cast("paths"))?
+                [..n_paths]
+                .to_vec(),
+            segments: bytemuck::try_cast_slice::<u8, Segment>(&segments)
+                .map_err(|_| cast("segments"))?[..pixels * self.params.segments as usize]
+                .to_vec(),
+            hdr: bytemuck::try_cast_slice::<u8, [f32; 4]>(&hdr).map_err(|_| cast("image"))?
+                [..pixels]
+                .to_vec(),
+            grid_cells: bytemuck::try_cast_slice::<u8, u32>(&grid_cells)
+                .map_err(|_| cast("grid"))?[..self.budget.cells as usize + 1]
+                .to_vec(),
+            grid_sorted: {
+                let cells: &[u32] =
+                    bytemuck::try_cast_slice(&grid_cells).map_err(|_| cast("grid"))?;
+                let total = (cells[self.budget.cells as usize] as usize).min(n_records);
+                bytemuck::try_cast_slice::<u8, u32>(&grid_sorted).map_err(|_| cast("grid"))?
+                    [..total]
+                    .to_vec()
+            },
+        })
+    }
+}
+
+/// Photon emitters for the lights: selection by power (mean over rgb), each photon carrying
+/// its light's power / (selection probability · photons per pass).
+pub fn emitters(lights: &[Light], volume: &GpuVolume, photons_per_pass: u32) -> Vec<PhotonEmitter> {
+    let extent = volume.extent;
+    let radius = 0.5
+        * (extent[0] * extent[0] + extent[1] * extent[1] + extent[2] * extent[2]).sqrt()
+        * 1.001;
+    let disk = std::f32::consts::PI * radius * radius;
+    let four_pi = 4.0 * std::f32::consts::PI;
+    let mut list: Vec<(u32, [f32; 3], [f32; 3])> = Vec::new();
+    let mut env = [0.0f32; 3];
+    for light in lights {
+        match *light {
+            Light::Directional {
+                direction,
+                irradiance,
+            } => list.push((
+                EMIT_DIRECTIONAL,
+                crate::camera::normalize(direction).unwrap_or([0.0, 0.0, -1.0]),
+                irradiance.map(|e| e * disk),
+            )),
+            Light::Point {
+                position,
+                intensity,
+            } => list.push((EMIT_POINT, position, intensity.map(|i| i * four_pi))),
+            Light::Environment { radiance } => {
+                for k in 0..3 {
+                    env[k] += radiance[k];
+                }
+            }
+        }
+    }
+    if env.iter().any(|&e| e > 0.0) {
+        // Uniform radiance L from every direction: L · 4π · πR² enters the bounding sphere.
+        list.push((EMIT_ENVIRONMENT, [0.0; 3], env.map(|l| l * four_pi * disk)));
+    }
+    let weight = |p: &[f32; 3]| (p[0] + p[1] + p[2]) / 3.0;
+    list.retain(|(_, _, p)| weight(p) > 0.0);
+    let total: f32 = list.iter().map(|(_, _, p)| weight(p)).sum();
+    if list.is_empty() {
+        return vec![PhotonEmitter {
+            vector: [0.0, 0.0, -1.0],
+            kind: EMIT_DIRECTIONAL,
+            power: [0.0; 3],
+            cdf: 1.0,
+        }];
+    }
+    let mut cdf = 0.0;
+    let n = list.len();
+    list.into_iter()
+        .enumerate()
+        .map(|(i, (kind, vector, power))| {
+            let prob = weight(&power) / total;
+            cdf += prob;
+            PhotonEmitter {
+                vector,
+                kind,
+                power: power.map(|p| p / (prob * photons_per_pass as f32)),
+                cdf: if i + 1 == n { 1.0 } else { cdf },
+            }
+        })
+        .collect()
+}
+
+impl Technique for Photon {
+    fn name(&self) -> &'static str {
+        "photon"
+    }
+
+    fn apply(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        change: &Change,
+    ) -> Result<(), EngineError> {
+        match change {
+            Change::Tf {
+                query_historygram, ..
+            } => {
+                self.update_tf(engine, scene, *query_historygram)?;
+            }
+            Change::Camera => {
+                // Photons do not depend on the camera: gather again.
+                if self.passes > 0 {
+                    self.write_scene(engine, scene)?;
+                    self.grid_and_gather(engine, scene, MODE_FULL, 0);
+                }
+            }
+            Change::Lights | Change::Params => {
+                self.write_emitters(engine, scene);
+                self.passes = 0;
+            }
+            Change::Viewport => {
+                *self = Photon::new(engine, self.volume.clone(), scene, self.params)?;
+            }
+            Change::Iterations => {
+                if scene.target_iterations.min(self.params.max_passes) > self.capacity {
+                    let passes = self.passes;
+                    *self = Photon::new(engine, self.volume.clone(), scene, self.params)?;
+                    if passes > 0 {
+                        self.recompute(engine, scene, passes)?;
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn step(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        budget: Duration,
+    ) -> Result<StepReport, EngineError> {
+        let target = self.target(scene);
+        let start = Instant::now();
+        let mut done = 0;
+        while self.passes < target {
+            self.add_pass(engine, scene)?;
+            engine.gpu.wait_idle()?;
+            done += 1;
+            let per_pass = start.elapsed() / done;
+            if budget.is_zero() || start.elapsed() + per_pass > budget {
+                break;
+            }
+        }
+        Ok(StepReport {
+            iterations_done: done,
+            iteration: self.passes,
+            converged: self.passes >= target,
+            gpu_time: start.elapsed(),
+        })
+    }
+
+    fn output(&self) -> &wgpu::Buffer {
+        &self.accum
+    }
+
+    fn iteration(&self) -> u32 {
+        self.passes
+    }
+
+    fn target_iterations(&self, scene: &Scene) -> u32 {
+        self.target(scene)
+    }
+
+    fn stats(&self) -> TechniqueStats {
+        let update = self.last_update.unwrap_or_default();
+        TechniqueStats {
+            name: self.name(),
+            iteration: self.passes,
+            memory_bytes: self.budget.total,
+            photons_traced: self.photons_traced,
+            photons_in_map: self.passes as u64 * self.params.photons_per_pass as u64,
+            photons_retraced_pct: self
+                .last_update
+                .map(|_| update.photons_retraced_pct() as f32),
+            segments_recomputed_pct: self
+                .last_update
+                .map(|_| update.segments_recomputed_pct() as f32),
+        }
+    }
+}

@@ -1,0 +1,412 @@
+//! Technique `photon` on whatever adapter exists (lavapipe in CI): incremental TF updates equal
+//! a full recompute bit for bit, and the photon map agrees with `raymarch` where both compute
+//! single scattering.
+
+mod common;
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use common::*;
+use voxlight_engine::techniques::photon::{Invalidation, Photon, PhotonParams, PhotonState};
+use voxlight_engine::{Change, GpuVolume, Scene, Technique};
+use voxlight_protocol::{Camera, Light, TfPoint, TransferFunction};
+
+fn point(value: f32, color: [f32; 3], opacity: f32) -> TfPoint {
+    TfPoint {
+        value,
+        color,
+        opacity,
+    }
+}
+
+/// The Cornell phantom's materials with a narrow plateau each (like the app's cornell_tf).
+fn cornell_tf(edit: impl Fn(&str, &mut [f32; 3], &mut f32)) -> TransferFunction {
+    let mut points = vec![point(0.0, [0.0; 3], 0.0), point(0.05, [0.0; 3], 0.0)];
+    for (name, value) in voxlight_volumes::CORNELL_MATERIALS {
+        let (mut color, mut opacity) = match *name {
+            "medium" => ([0.9, 0.9, 0.9], 0.02),
+            "left wall" => ([0.85, 0.1, 0.08], 1.0),
+            "right wall" => ([0.1, 0.75, 0.12], 1.0),
+            _ => ([0.85, 0.85, 0.85], 1.0),
+        };
+        edit(name, &mut color, &mut opacity);
+        points.push(point(value - 0.03, color, opacity));
+        points.push(point((value + 0.03).min(1.0), color, opacity));
+    }
+    TransferFunction { points }
+}
+
+fn cornell_scene(size: u32, tf: TransferFunction) -> Scene {
+    let mut s = scene(
+        tf,
+        vec![
+            Light::Point {
+                position: [0.0, -0.05, 0.3],
+                intensity: [0.9, 0.85, 0.8],
+            },
+            Light::Directional {
+                direction: [0.3, 0.2, -1.0],
+                irradiance: [1.0, 1.0, 1.0],
+            },
+            Light::Environment {
+                radiance: [0.08, 0.08, 0.09],
+            },
+        ],
+        30.0,
+        size,
+        2,
+    );
+    // Look into the open front of the box (z = max).
+    s.camera = Camera {
+        eye: [0.0, 0.0, 2.6],
+        target: [0.0, 0.0, 0.0],
+        up: [0.0, 1.0, 0.0],
+        fov_deg: 28.0,
+    };
+    s
+}
+
+fn params(invalidation: Invalidation) -> PhotonParams {
+    PhotonParams {
+        photons_per_pass: 4096,
+        max_passes: 2,
+        bounces: 3,
+        radius: 0.0,
+        segments: 6,
+        gather_step_voxels: 1.0,
+        invalidation,
+    }
+}
+
+fn converge(photon: &mut Photon, scene: &Scene) {
+    let engine = engine();
+    while photon.iteration() < photon.target_iterations(scene) {
+        photon
+            .step(engine, scene, Duration::from_secs(60))
+            .expect("step");
+    }
+}
+
+fn full_recompute(volume: &Arc<GpuVolume>, scene: &Scene, p: PhotonParams) -> PhotonState {
+    let engine = engine();
+    let mut full = Photon::new(engine, volume.clone(), scene, p).expect("photon");
+    full.recompute(engine, scene, p.max_passes)
+        .expect("recompute");
+    full.read_state(engine).expect("read")
+}
+
+fn bytes<T: bytemuck::Pod>(x: &[T]) -> Vec<u8> {
+    bytemuck::cast_slice::<T, u8>(x).to_vec()
+}
+
+fn first_difference(a: &PhotonState, b: &PhotonState) -> Option<String> {
+    if bytes(&a.paths) != bytes(&b.paths) {
+        let i = a.paths.iter().zip(&b.paths).position(|(x, y)| x != y);
+        return Some(format!("paths differ first at {i:?}"));
+    }
+    if bytes(&a.records) != bytes(&b.records) {
+        let i = (0..a.records.len())
+            .find(|&i| bytemuck::bytes_of(&a.records[i]) != bytemuck::bytes_of(&b.records[i]));
+        return Some(format!(
+            "records differ first at {i:?}: {:?} vs {:?}",
+            i.map(|i| a.records[i]),
+            i.map(|i| b.records[i])
+        ));
+    }
+    if a.grid_cells != b.grid_cells {
+        let i = a
+            .grid_cells
+            .iter()
+            .zip(&b.grid_cells)
+            .position(|(x, y)| x != y);
+        return Some(format!("grid cell starts differ first at {i:?}"));
+    }
+    if a.grid_sorted != b.grid_sorted {
+        let i = a
+            .grid_sorted
+            .iter()
+            .zip(&b.grid_sorted)
+            .position(|(x, y)| x != y);
+        return Some(format!("grid order differs first at {i:?}"));
+    }
+    if bytes(&a.segments) != bytes(&b.segments) {
+        let i = (0..a.segments.len())
+            .find(|&i| bytemuck::bytes_of(&a.segments[i]) != bytemuck::bytes_of(&b.segments[i]));
+        return Some(format!(
+            "segments differ first at {i:?}: {:?} vs {:?}",
+            i.map(|i| a.segments[i]),
+            i.map(|i| b.segments[i])
+        ));
+    }
+    if bytes(&a.hdr) != bytes(&b.hdr) {
+        return Some("images differ".into());
+    }
+    None
+}
+
+#[test]
+fn incremental_tf_edits_equal_a_full_recompute_bit_for_bit() {
+    let size = 40;
+    let volume = engine()
+        .upload_volume(&voxlight_volumes::phantom("cornell", 40).expect("cornell"))
+        .expect("upload");
+    let edits: Vec<(&str, TransferFunction, bool)> = vec![
+        // (name, new TF, local: must reuse part of the work)
+        (
+            "colour only: sphere red",
+            cornell_tf(|n, c, _| {
+                if n == "sphere" {
+                    *c = [0.9, 0.1, 0.1];
+                }
+            }),
+            true,
+        ),
+        (
+            "opacity only: tall block removed",
+            cornell_tf(|n, c, o| {
+                if n == "sphere" {
+                    *c = [0.9, 0.1, 0.1];
+                }
+                if n == "tall block" {
+                    *o = 0.0;
+                }
+            }),
+            true,
+        ),
+        (
+            "local: thicker medium",
+            cornell_tf(|n, c, o| {
+                if n == "sphere" {
+                    *c = [0.9, 0.1, 0.1];
+                }
+                if n == "tall block" {
+                    *o = 0.0;
+                }
+                if n == "medium" {
+                    *o = 0.05;
+                }
+            }),
+            false,
+        ),
+        (
+            "global: every colour darker",
+            cornell_tf(|n, c, o| {
+                *c = c.map(|x| x * 0.7);
+                if n == "tall block" {
+                    *o = 0.0;
+                }
+                if n == "medium" {
+                    *o = 0.05;
+                }
+            }),
+            false,
+        ),
+    ];
+    for spatial in [
+        Invalidation::DirtyCells,
+        Invalidation::SpatialHistogram,
+        Invalidation::AnyPhoton,
+    ] {
+        let p = params(spatial);
+        let mut s = cornell_scene(size, cornell_tf(|_, _, _| {}));
+        let mut photon = Photon::new(engine(), volume.clone(), &s, p).expect("photon");
+        converge(&mut photon, &s);
+        for (name, tf, local) in &edits {
+            let change = Change::tf(&s.tf, tf);
+            s.tf = tf.clone();
+            photon.apply(engine(), &s, &change).expect("apply");
+            let report = photon.last_update().expect("report");
+            let incremental = photon.read_state(engine()).expect("read");
+            let full = full_recompute(&volume, &s, p);
+            if let Some(diff) = first_difference(&incremental, &full) {
+                panic!("{spatial:?}, edit `{name}`: incremental != full: {diff}");
+            }
+            eprintln!(
+                "{spatial:?}, {name}: query {:064b}, retraced {:.1}% of {} paths, {} records changed, segments {:.1}%",
+                match &change {
+                    Change::Tf {
+                        query_historygram, ..
+                    } => *query_historygram,
+                    _ => 0,
+                },
+                report.photons_retraced_pct(),
+                report.paths,
+                report.records_changed,
+                report.segments_recomputed_pct()
+            );
+            assert!(report.paths_retraced > 0, "{name}: nothing retraced");
+            if *local {
+                assert!(
+                    report.photons_retraced_pct() < 90.0,
+                    "{name}: a local edit retraced {:.1}% of the photons",
+                    report.photons_retraced_pct()
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn camera_edit_keeps_photons_and_matches_a_full_recompute() {
+    let size = 32;
+    let volume = engine()
+        .upload_volume(&voxlight_volumes::phantom("cornell", 32).expect("cornell"))
+        .expect("upload");
+    let p = params(Invalidation::DirtyCells);
+    let mut s = cornell_scene(size, cornell_tf(|_, _, _| {}));
+    let mut photon = Photon::new(engine(), volume.clone(), &s, p).expect("photon");
+    converge(&mut photon, &s);
+    s.camera.eye = [0.3, 0.2, 2.5];
+    photon.apply(engine(), &s, &Change::Camera).expect("apply");
+    assert_eq!(photon.iteration(), p.max_passes, "photons were kept");
+    let state = photon.read_state(engine()).expect("read");
+    assert!(first_difference(&state, &full_recompute(&volume, &s, p)).is_none());
+}
+
+#[test]
+fn single_scattering_agrees_with_raymarch() {
+    // A white-ish scattering ball lit by a directional light and the environment. With one
+    // stored bounce the photon map estimates exactly what `raymarch` does (single scattering);
+    // it differs by kernel blur (radius 2.5 voxels) and noise. Mean radiance over the ball
+    // within 8%.
+    let size = 48;
+    let (_, volume) = sphere(48);
+    let lights = vec![
+        Light::Directional {
+            direction: [0.35, 0.75, -0.55],
+            irradiance: [3.0, 3.0, 3.0],
+        },
+        Light::Environment {
+            radiance: [0.2, 0.2, 0.2],
+        },
+    ];
+    let s = scene(ramp_tf(0.8), lights, 3.0, size, 8);
+    let (_, reference) = render_with("raymarch", volume.clone(), &s);
+    let p = PhotonParams {
+        photons_per_pass: 65536,
+        max_passes: 8,
+        bounces: 1,
+        ..PhotonParams::default()
+    };
+    let mut photon = Photon::new(engine(), volume, &s, p).expect("photon");
+    converge(&mut photon, &s);
+    let state = photon.read_state(engine()).expect("read");
+    let env = 0.2;
+    // Pixels that see the ball: the raymarch differs from the bare environment there.
+    let (mut got, mut want, mut n) = (0.0f64, 0.0f64, 0);
+    for (i, r) in reference.iter().enumerate() {
+        if (r[1] - env).abs() > 0.02 {
+            got += state.hdr[i][1] as f64;
+            want += r[1] as f64;
+            n += 1;
+        }
+    }
+    assert!(n > 200, "the ball covers {n} pixels");
+    let ratio = got / want;
+    eprintln!("photon / raymarch over {n} pixels: {ratio:.4}");
+    assert!(
+        (ratio - 1.0).abs() < 0.08,
+        "photon mean {:.4} vs raymarch {:.4} (ratio {ratio:.4})",
+        got / n as f64,
+        want / n as f64
+    );
+}
+
+#[test]
+fn selectable_by_name_and_reports_stats() {
+    let (_, volume) = sphere(32);
+    let s = scene(
+        ramp_tf(0.8),
+        voxlight_protocol::default_lights(),
+        3.0,
+        32,
+        2,
+    );
+    let (renderer, hdr) = render_with("photon", volume, &s);
+    assert_eq!(renderer.technique_name(), "photon");
+    assert!(
+        hdr.iter()
+            .all(|p| p.iter().all(|c| c.is_finite() && *c >= 0.0))
+    );
+    let stats = renderer.stats();
+    assert_eq!(stats.iteration, 2);
+    assert!(stats.photons_in_map > 0 && stats.photons_traced >= stats.photons_in_map);
+    assert!(stats.memory_bytes > 0);
+    assert!(engine().techniques().iter().any(|t| t.name == "photon"));
+}
+
+#[test]
+fn oversized_photon_map_is_refused_before_allocation() {
+    let (_, volume) = sphere(32);
+    let s = scene(
+        ramp_tf(0.8),
+        voxlight_protocol::default_lights(),
+        3.0,
+        32,
+        64,
+    );
+    let p = PhotonParams {
+        photons_per_pass: 1 << 22,
+        max_passes: 64,
+        ..PhotonParams::default()
+    };
+    match Photon::new(engine(), volume, &s, p) {
+        Err(voxlight_engine::EngineError::OutOfMemory { needed, available }) => {
+            assert!(needed > available)
+        }
+        Err(e) => panic!("wrong error: {e}"),
+        Ok(_) => panic!("a 2^28-record photon map was accepted"),
+    }
+}
+
+#[test]
+#[ignore = "KNOWN FAILURE (open): at the bench size with the app's Cornell lights an incremental segment differs from the full recompute; reproducer"]
+fn bench_sized_cornell_edit_is_bit_exact() {
+    let size = 96;
+    let volume = engine()
+        .upload_volume(&voxlight_volumes::phantom("cornell", 64).expect("cornell"))
+        .expect("upload");
+    let p = PhotonParams {
+        photons_per_pass: 16384,
+        max_passes: 4,
+        bounces: 2,
+        segments: 8,
+        ..PhotonParams::default()
+    };
+    let mut s = cornell_scene(size, cornell_tf(|_, _, _| {}));
+    s.target_iterations = 4;
+    s.params.density_scale = 60.0;
+    s.lights = vec![
+        Light::Point {
+            position: [0.0, -0.05, 0.36],
+            intensity: [0.9, 0.85, 0.8],
+        },
+        Light::Environment {
+            radiance: [0.08, 0.08, 0.09],
+        },
+    ];
+    let tf = cornell_tf(|n, c, _| {
+        if n == "sphere" {
+            *c = [0.2, 0.35, 0.9];
+        }
+    });
+    let mut photon = Photon::new(engine(), volume.clone(), &s, p).expect("photon");
+    photon.recompute(engine(), &s, 4).expect("recompute");
+    let again = full_recompute(&volume, &s, p);
+    assert!(
+        first_difference(&photon.read_state(engine()).unwrap(), &again).is_none(),
+        "full recompute is not reproducible: {:?}",
+        first_difference(&photon.read_state(engine()).unwrap(), &again)
+    );
+    let change = Change::tf(&s.tf, &tf);
+    s.tf = tf;
+    photon.apply(engine(), &s, &change).expect("apply");
+    let full = full_recompute(&volume, &s, p);
+    let inc = photon.read_state(engine()).unwrap();
+    assert!(
+        first_difference(&inc, &full).is_none(),
+        "{:?}",
+        first_difference(&inc, &full)
+    );
+}

@@ -1,0 +1,79 @@
+//! The `#[repr(C)]` structs of technique `photon` (server/engine/src/passes/photon.rs) have the
+//! same layout as their WGSL twins in shaders/photon_common.wgsl.
+
+use std::mem::{offset_of, size_of};
+
+use voxlight_engine::passes::photon::{
+    PhotonEmitter, PhotonPath, PhotonRecord, PhotonUniforms, Segment,
+};
+use voxlight_engine::shaders;
+
+fn assert_layout(module: &naga::Module, name: &str, size: usize, fields: &[(&str, usize)]) {
+    let (_, ty) = module
+        .types
+        .iter()
+        .find(|(_, t)| t.name.as_deref() == Some(name))
+        .unwrap_or_else(|| panic!("struct {name} not found in WGSL"));
+    let naga::TypeInner::Struct { members, span } = &ty.inner else {
+        panic!("{name} is not a struct");
+    };
+    assert_eq!(
+        *span as usize, size,
+        "{name}: WGSL size {span} != Rust {size}"
+    );
+    assert_eq!(members.len(), fields.len(), "{name}: field count differs");
+    for (member, (field, offset)) in members.iter().zip(fields) {
+        assert_eq!(member.name.as_deref(), Some(*field), "{name}: field order");
+        assert_eq!(member.offset as usize, *offset, "{name}.{field}: offset");
+    }
+}
+
+macro_rules! fields {
+    ($ty:ty: $($f:ident),* $(,)?) => {
+        &[$((stringify!($f), offset_of!($ty, $f))),*]
+    };
+}
+
+#[test]
+fn photon_structs_match_wgsl() {
+    for (name, source) in [
+        ("photon_trace", shaders::photon_trace()),
+        ("photon_grid", shaders::photon_grid()),
+        ("photon_gather", shaders::photon_gather()),
+    ] {
+        let module = naga::front::wgsl::parse_str(&source)
+            .unwrap_or_else(|e| panic!("{name}: {}", e.emit_to_string(&source)));
+        assert_layout(
+            &module,
+            "PhotonUniforms",
+            size_of::<PhotonUniforms>(),
+            fields!(PhotonUniforms: grid_dims, cell_count, radius, kernel_norm, majorant,
+                gather_step, photons_per_pass, path_count, record_count, bounces, path_offset,
+                dispatch_paths, mode, segments, query_lo, query_hi, emitter_count, spatial),
+        );
+        assert_layout(
+            &module,
+            "PhotonRecord",
+            size_of::<PhotonRecord>(),
+            fields!(PhotonRecord: position, cell, power, hist_lo, direction, hist_hi),
+        );
+        assert_layout(
+            &module,
+            "PhotonPath",
+            size_of::<PhotonPath>(),
+            fields!(PhotonPath: count, end_lo, end_hi, pad0),
+        );
+        assert_layout(
+            &module,
+            "PhotonEmitter",
+            size_of::<PhotonEmitter>(),
+            fields!(PhotonEmitter: vector, kind, power, cdf),
+        );
+        assert_layout(
+            &module,
+            "Segment",
+            size_of::<Segment>(),
+            fields!(Segment: color, transmittance, hist_lo, hist_hi, pad0, pad1),
+        );
+    }
+}

@@ -1,0 +1,76 @@
+// Shared pieces of technique `manylight` (Weber et al. 2013): the parameters, the virtual
+// lights, the cube-map layout of their adaptive volumetric shadow maps (AVSMs) and the virtual
+// spherical light's geometry term. Rust twin: server/engine/src/passes/manylight.rs.
+
+struct ManylightParams {
+    // Light paths traced; each leaves at most `vls_per_path` virtual lights.
+    paths: u32,
+    vls_per_path: u32,
+    // Texels per cube-face edge and nodes per texel of every AVSM.
+    face_res: u32,
+    nodes: u32,
+    // Transmittance from virtual lights: 0 AVSM point sampling, 1 AVSM trilinear, 2 ray marched.
+    mode: u32,
+    seed: u32,
+    // Radius of the virtual spherical lights (world units).
+    vsl_radius: f32,
+    // Density scale the AVSMs were built with: lookups rescale T^(density/built) (paper §5).
+    built_density: f32,
+}
+
+const MODE_AVSM_POINT: u32 = 0u;
+const MODE_AVSM_TRILINEAR: u32 = 1u;
+const MODE_RAY_MARCHED: u32 = 2u;
+
+// Most nodes one AVSM texel may hold.
+const MAX_NODES: u32 = 12u;
+
+// A virtual light: a scattering event of a light path. It re-emits `power` (W, albedo
+// applied) with the phase function around `direction` (the light's travel direction there).
+struct VirtualLight {
+    position: vec3<f32>,
+    pad0: f32,
+    power: vec3<f32>,
+    pad1: f32,
+    direction: vec3<f32>,
+    pad2: f32,
+}
+
+// Cube face (0..5: +x −x +y −y +z −z) and face coordinates in [−1, 1]² of direction d.
+fn cube_face(d: vec3<f32>) -> vec3<f32> {
+    let a = abs(d);
+    if (a.x >= a.y && a.x >= a.z) {
+        return vec3<f32>(select(1.0, 0.0, d.x > 0.0), d.y / a.x, d.z / a.x);
+    }
+    if (a.y >= a.z) {
+        return vec3<f32>(select(3.0, 2.0, d.y > 0.0), d.x / a.y, d.z / a.y);
+    }
+    return vec3<f32>(select(5.0, 4.0, d.z > 0.0), d.x / a.z, d.y / a.z);
+}
+
+// The direction through face coordinates (u, v) of `face` (inverse of cube_face).
+fn cube_direction(face: u32, u: f32, v: f32) -> vec3<f32> {
+    let s = select(-1.0, 1.0, face % 2u == 0u);
+    let axis = face / 2u;
+    if (axis == 0u) {
+        return normalize(vec3<f32>(s, u, v));
+    }
+    if (axis == 1u) {
+        return normalize(vec3<f32>(u, s, v));
+    }
+    return normalize(vec3<f32>(u, v, s));
+}
+
+// First node of texel (x, y) of `face` in the AVSM of virtual light `vl`.
+fn avsm_base(vl: u32, face: u32, x: u32, y: u32) -> u32 {
+    let r = ml.face_res;
+    return (((vl * 6u + face) * r + y) * r + x) * ml.nodes;
+}
+
+// Solid angle of a sphere of radius r seen from distance d, over π r²: the virtual spherical
+// light's replacement for 1/d² (equal to it far away, bounded by 2/r² inside the sphere).
+fn vsl_geometry(d: f32, r: f32) -> f32 {
+    let s = min(1.0, (r * r) / max(d * d, 1e-12));
+    let omega = 2.0 * PI * (1.0 - sqrt(1.0 - s));
+    return omega / (PI * r * r);
+}

@@ -1,0 +1,121 @@
+// Technique `manylight`, pass 1: virtual lights. One invocation per light path (Weber et al.
+// 2013, §3.1): a light chosen by power, an emitted ray (directional: a disk covering the
+// volume's bounding sphere; point: a uniform direction; environment: an inward cosine-weighted
+// ray from the bounding sphere), then delta tracking to each real collision, where a virtual
+// light is stored with the path's power × albedo, Russian roulette on the throughput, and
+// Henyey-Greenstein scattering. Slots a path does not fill get zero power.
+// Rust twin: server/engine/src/passes/manylight.rs.
+
+@group(0) @binding(0) var<uniform> scene: SceneUniforms;
+@group(0) @binding(1) var volume_tex: texture_3d<f32>;
+@group(0) @binding(2) var<storage, read> tf_lut: array<vec4<f32>>;
+@group(0) @binding(3) var<storage, read> lights: array<GpuLight>;
+@group(0) @binding(5) var<storage, read> cell_max_opacity: array<f32>;
+@group(0) @binding(6) var<uniform> ml: ManylightParams;
+@group(0) @binding(7) var<storage, read_write> vls: array<VirtualLight>;
+
+fn uniform_direction(u1: f32, u2: f32) -> vec3<f32> {
+    let z = 1.0 - 2.0 * u1;
+    let r = sqrt(max(0.0, 1.0 - z * z));
+    let phi = 2.0 * PI * u2;
+    return vec3<f32>(r * cos(phi), r * sin(phi), z);
+}
+
+fn luminance(c: vec3<f32>) -> f32 {
+    return dot(c, vec3<f32>(0.2126, 0.7152, 0.0722));
+}
+
+@compute @workgroup_size(64)
+fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let path = gid.x;
+    if (path >= ml.paths) {
+        return;
+    }
+    var rng = rng_new(ml.seed, path, 0x7f4a7c15u);
+    let center = 0.5 * (scene.box_min + scene.box_max);
+    let radius = 0.5 * length(scene.box_max - scene.box_min);
+    let disk_area = PI * radius * radius;
+
+    // Emitted power of every light, and one chosen in proportion to it.
+    let env_power = scene.env_radiance * PI * 4.0 * PI * radius * radius;
+    var total = luminance(env_power);
+    for (var i = 0u; i < scene.light_count; i++) {
+        let l = lights[i];
+        total += luminance(select(l.color * 4.0 * PI, l.color * disk_area, l.kind == LIGHT_DIRECTIONAL));
+    }
+    var origin = center;
+    var dir = vec3<f32>(0.0, 0.0, 1.0);
+    var power = vec3<f32>(0.0);
+    if (total > 0.0) {
+        var pick = rng_next(&rng) * total;
+        let u1 = rng_next(&rng);
+        let u2 = rng_next(&rng);
+        let u3 = rng_next(&rng);
+        let u4 = rng_next(&rng);
+        var chosen = false;
+        for (var i = 0u; i < scene.light_count; i++) {
+            let l = lights[i];
+            let p = select(l.color * 4.0 * PI, l.color * disk_area, l.kind == LIGHT_DIRECTIONAL);
+            let lum = luminance(p);
+            if (!chosen && lum > 0.0 && pick < lum) {
+                chosen = true;
+                power = p * (total / lum);
+                if (l.kind == LIGHT_DIRECTIONAL) {
+                    dir = normalize(l.vector);
+                    let basis = orthonormal_basis(dir);
+                    let r = radius * sqrt(u1);
+                    let phi = 2.0 * PI * u2;
+                    origin = center - dir * 2.0 * radius + basis * vec3<f32>(r * cos(phi), r * sin(phi), 0.0);
+                } else {
+                    origin = l.vector;
+                    dir = uniform_direction(u1, u2);
+                }
+            }
+            pick -= lum;
+        }
+        if (!chosen) {
+            // The environment: a point on the bounding sphere, a cosine-weighted inward ray.
+            let lum = luminance(env_power);
+            power = env_power * (total / max(lum, 1e-20));
+            let n = uniform_direction(u1, u2);
+            origin = center + n * radius;
+            let r = sqrt(u3);
+            let phi = 2.0 * PI * u4;
+            let local = vec3<f32>(r * cos(phi), r * sin(phi), sqrt(max(0.0, 1.0 - u3)));
+            dir = normalize(orthonormal_basis(-n) * local);
+        }
+    }
+    var weight = power / f32(ml.paths);
+    let start = max(weight.x, max(weight.y, weight.z));
+    var alive = start > 0.0;
+    for (var k = 0u; k < ml.vls_per_path; k++) {
+        let slot = path * ml.vls_per_path + k;
+        var vl = VirtualLight(vec3<f32>(0.0), 0.0, vec3<f32>(0.0), 0.0, dir, 0.0);
+        if (alive) {
+            let hit = intersect_box(origin, dir, scene.box_min, scene.box_max);
+            var event = vec2<f32>(0.0, 0.0);
+            if (hit.x < hit.y) {
+                event = delta_track(origin, dir, max(hit.x, 0.0), hit.y, &rng);
+            }
+            if (event.y == 0.0) {
+                alive = false;
+            } else {
+                let p = origin + dir * event.x;
+                weight *= medium_at(p).rgb;
+                vl = VirtualLight(p, 0.0, weight, 0.0, dir, 0.0);
+                // Roulette on the throughput relative to the emitted power.
+                let survive = min(1.0, max(weight.x, max(weight.y, weight.z)) / start);
+                if (rng_next(&rng) >= survive) {
+                    alive = false;
+                } else {
+                    weight /= survive;
+                    let u1 = rng_next(&rng);
+                    let u2 = rng_next(&rng);
+                    dir = sample_hg(dir, scene.g, u1, u2);
+                    origin = p;
+                }
+            }
+        }
+        vls[slot] = vl;
+    }
+}

@@ -1,0 +1,168 @@
+// Shared pieces of technique `photon` (volumetric photon mapping with historygrams, Jönsson et
+// al. 2012): the bindings every photon pass shares (one layout, server/engine/src/passes/photon.rs),
+// the photon, path and view-ray-segment records, historygram helpers and the medium.
+// Prepended to photon_trace.wgsl, photon_grid.wgsl and photon_gather.wgsl.
+
+struct PhotonUniforms {
+    // Hash grid: cell edge = gather radius, over the volume box.
+    grid_dims: vec3<u32>,
+    cell_count: u32,
+    radius: f32,
+    // Epanechnikov normalisation 15 / (8π r³) divided by the number of photon passes.
+    kernel_norm: f32,
+    // Fixed majorant of delta tracking: density_scale · 1 (opacity ≤ 1), independent of the TF.
+    majorant: f32,
+    // View-ray march step in world units.
+    gather_step: f32,
+    photons_per_pass: u32,
+    // Paths in the map (passes · photons_per_pass) and records (paths · bounces).
+    path_count: u32,
+    record_count: u32,
+    // Scattering events stored per path (1 = single scattering).
+    bounces: u32,
+    // First path of this trace dispatch and how many.
+    path_offset: u32,
+    dispatch_paths: u32,
+    // MODE_FULL or MODE_UPDATE.
+    mode: u32,
+    // View-ray segments per pixel (Vn).
+    segments: u32,
+    // Query historygram of the edit (64 bits).
+    query_lo: u32,
+    query_hi: u32,
+    emitter_count: u32,
+    // How segments learn of changed photons: SPATIAL_NONE (any change invalidates every
+    // segment), SPATIAL_AXES (the 3×64-bit spatial historygram), SPATIAL_CELLS (a dirty bit per
+    // hash-grid cell, dilated by one cell).
+    spatial: u32,
+}
+
+// A stored photon interaction (a real collision): where, the direction it arrived from (travel
+// direction), its power after the albedo there, its hash cell (CELL_NONE = no photon) and the
+// historygram of every data value its path sampled up to here.
+struct PhotonRecord {
+    position: vec3<f32>,
+    cell: u32,
+    power: vec3<f32>,
+    hist_lo: u32,
+    direction: vec3<f32>,
+    hist_hi: u32,
+}
+
+// Per path: stored interactions and the historygram of the whole path (including the flight
+// that left the volume), so a path whose end is affected is found by one test.
+struct PhotonPath {
+    count: u32,
+    end_lo: u32,
+    end_hi: u32,
+    pad0: u32,
+}
+
+// A light as photons see it. kind: EMIT_DIRECTIONAL (vector = travel direction), EMIT_POINT
+// (vector = position), EMIT_ENVIRONMENT. power: the power of one photon (light power / its
+// selection probability / photons per pass). cdf: cumulative selection probability.
+struct PhotonEmitter {
+    vector: vec3<f32>,
+    kind: u32,
+    power: vec3<f32>,
+    cdf: f32,
+}
+
+// One view-ray segment: in-scattered radiance (rgb, transmittance inside the segment starts at
+// 1), the segment's transmittance and the historygram of its samples' data values.
+struct Segment {
+    color: vec3<f32>,
+    transmittance: f32,
+    hist_lo: u32,
+    hist_hi: u32,
+    pad0: u32,
+    pad1: u32,
+}
+
+const MODE_FULL: u32 = 0u;
+const MODE_UPDATE: u32 = 1u;
+const EMIT_DIRECTIONAL: u32 = 0u;
+const EMIT_POINT: u32 = 1u;
+const EMIT_ENVIRONMENT: u32 = 2u;
+const CELL_NONE: u32 = 0xffffffffu;
+const HIST_BINS: u32 = 64u;
+
+// Counters written by the passes: retraced paths, changed photon records, recomputed segments,
+// then the spatial historygram (x lo/hi, y lo/hi, z lo/hi).
+const COUNTER_RETRACED: u32 = 0u;
+const COUNTER_CHANGED: u32 = 1u;
+const COUNTER_SEGMENTS: u32 = 2u;
+const COUNTER_SPATIAL: u32 = 3u;
+// Dirty-cell bits (SPATIAL_CELLS) follow the counters.
+const COUNTER_DIRTY: u32 = 9u;
+const SPATIAL_NONE: u32 = 0u;
+const SPATIAL_AXES: u32 = 1u;
+const SPATIAL_CELLS: u32 = 2u;
+
+@group(0) @binding(0) var<uniform> scene: SceneUniforms;
+@group(0) @binding(1) var volume_tex: texture_3d<f32>;
+@group(0) @binding(2) var<storage, read> tf_lut: array<vec4<f32>>;
+@group(0) @binding(3) var<uniform> photon: PhotonUniforms;
+@group(0) @binding(4) var<storage, read> emitters: array<PhotonEmitter>;
+@group(0) @binding(5) var<storage, read_write> records: array<PhotonRecord>;
+@group(0) @binding(6) var<storage, read_write> paths: array<PhotonPath>;
+// [0, cell_count]: first sorted slot of each cell (exclusive prefix sum, total at the end);
+// [cell_count + 1, 2·cell_count + 1): per-cell counters and scatter cursors.
+@group(0) @binding(7) var<storage, read_write> grid_cells: array<atomic<u32>>;
+@group(0) @binding(8) var<storage, read_write> grid_sorted: array<u32>;
+@group(0) @binding(9) var<storage, read_write> segments: array<Segment>;
+@group(0) @binding(10) var<storage, read_write> accum: array<vec4<f32>>;
+@group(0) @binding(11) var<storage, read_write> counters: array<atomic<u32>>;
+
+// Linear invocation index of a 1D problem dispatched as a 2D grid of 64-wide workgroups.
+fn linear_index(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
+    return gid.y * groups.x * 64u + gid.x;
+}
+
+// Historygram bit of data value v: d(x) = 1 << floor(x·(p − 1)), p = 64, as (lo, hi) words.
+fn hist_bit(v: f32) -> vec2<u32> {
+    let bin = min(u32(clamp(v, 0.0, 1.0) * f32(HIST_BINS - 1u)), HIST_BINS - 1u);
+    if (bin < 32u) {
+        return vec2<u32>(1u << bin, 0u);
+    }
+    return vec2<u32>(0u, 1u << (bin - 32u));
+}
+
+fn hist_hits_query(lo: u32, hi: u32) -> bool {
+    return ((lo & photon.query_lo) | (hi & photon.query_hi)) != 0u;
+}
+
+// Bits first..=last of a 64-bit mask as (lo, hi).
+fn range_mask(first: u32, last: u32) -> vec2<u32> {
+    var m = vec2<u32>(0u);
+    for (var b = first; b <= last; b++) {
+        if (b < 32u) {
+            m.x |= 1u << b;
+        } else {
+            m.y |= 1u << (b - 32u);
+        }
+    }
+    return m;
+}
+
+// Spatial historygram bin (per axis, 64 over the box) of world position p.
+fn spatial_bins(p: vec3<f32>) -> vec3<u32> {
+    let u = (p - scene.box_min) / (scene.box_max - scene.box_min);
+    return min(vec3<u32>(clamp(u, vec3<f32>(0.0), vec3<f32>(1.0)) * 64.0), vec3<u32>(63u));
+}
+
+// Hash-grid cell of world position p (cell edge = radius).
+fn grid_cell3(p: vec3<f32>) -> vec3<i32> {
+    let c = vec3<i32>(floor((p - scene.box_min) / photon.radius));
+    return clamp(c, vec3<i32>(0), vec3<i32>(photon.grid_dims) - 1);
+}
+
+fn grid_index(c: vec3<i32>) -> u32 {
+    let d = photon.grid_dims;
+    return (u32(c.z) * d.y + u32(c.y)) * d.x + u32(c.x);
+}
+
+// Data value at world position p (trilinear, volume.wgsl).
+fn data_at(p: vec3<f32>) -> f32 {
+    return sample_volume((p - scene.box_min) / (scene.box_max - scene.box_min));
+}

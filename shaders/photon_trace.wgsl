@@ -1,0 +1,217 @@
+// Technique `photon`, pass 1: photon tracing. One invocation per photon path: emission from a
+// light chosen by power (directional: a disk covering the volume's bounding sphere; point: a
+// uniform direction; environment: a uniform direction and such a disk), delta tracking against
+// a fixed, TF-independent majorant, a record at every real collision (power × albedo there),
+// Henyey-Greenstein scattering, at most `bounces` records. Every data value a tentative
+// collision reads is added to the path's historygram.
+//
+// Randomness is keyed by (seed, path, interaction k): the flight to interaction k and the
+// scattering that starts it draw from rng_new(seed, path, k) only, and the state it starts
+// from (position, direction, power, historygram) is exactly what record k − 1 stores. So
+// MODE_UPDATE can restart a path at its last record whose historygram misses the query and
+// produce bit for bit the path a full trace (MODE_FULL) would.
+// Rust twin: server/engine/src/passes/photon.rs.
+
+// Marks the spatial historygram (3×64 bits) at world position p and, for SPATIAL_CELLS, the
+// dirty bits of p's hash cell and its 26 neighbours (every cell a gather reaching p samples).
+fn mark_spatial(p: vec3<f32>) {
+    let b = spatial_bins(p);
+    for (var axis = 0u; axis < 3u; axis++) {
+        let bin = b[axis];
+        let word = COUNTER_SPATIAL + axis * 2u + bin / 32u;
+        atomicOr(&counters[word], 1u << (bin % 32u));
+    }
+    if (photon.spatial == SPATIAL_CELLS) {
+        let c = grid_cell3(p);
+        let dims = vec3<i32>(photon.grid_dims);
+        for (var dz = -1; dz <= 1; dz++) {
+            for (var dy = -1; dy <= 1; dy++) {
+                for (var dx = -1; dx <= 1; dx++) {
+                    let n = c + vec3<i32>(dx, dy, dz);
+                    if (all(n >= vec3<i32>(0)) && all(n < dims)) {
+                        let cell = grid_index(n);
+                        atomicOr(&counters[COUNTER_DIRTY + cell / 32u], 1u << (cell % 32u));
+                    }
+                }
+            }
+        }
+    }
+}
+
+fn same_record(a: PhotonRecord, b: PhotonRecord) -> bool {
+    return all(bitcast<vec3<u32>>(a.position) == bitcast<vec3<u32>>(b.position))
+        && all(bitcast<vec3<u32>>(a.power) == bitcast<vec3<u32>>(b.power))
+        && all(bitcast<vec3<u32>>(a.direction) == bitcast<vec3<u32>>(b.direction))
+        && a.cell == b.cell && a.hist_lo == b.hist_lo && a.hist_hi == b.hist_hi;
+}
+
+// Writes record `index`; in MODE_UPDATE a record that differs from the one it replaces marks
+// both positions as changed.
+fn store_record(index: u32, record: PhotonRecord) {
+    if (photon.mode == MODE_UPDATE) {
+        let old = records[index];
+        if (!same_record(old, record)) {
+            atomicAdd(&counters[COUNTER_CHANGED], 1u);
+            if (old.cell != CELL_NONE) {
+                mark_spatial(old.position);
+            }
+            if (record.cell != CELL_NONE) {
+                mark_spatial(record.position);
+            }
+        }
+    }
+    records[index] = record;
+}
+
+fn uniform_sphere(u1: f32, u2: f32) -> vec3<f32> {
+    let z = 1.0 - 2.0 * u1;
+    let r = sqrt(max(0.0, 1.0 - z * z));
+    let phi = 2.0 * PI * u2;
+    return vec3<f32>(r * cos(phi), r * sin(phi), z);
+}
+
+struct Emission {
+    origin: vec3<f32>,
+    direction: vec3<f32>,
+    power: vec3<f32>,
+}
+
+fn emit(rng: ptr<function, Rng>) -> Emission {
+    let u = rng_next(rng);
+    var e = emitters[photon.emitter_count - 1u];
+    for (var i = 0u; i < photon.emitter_count; i++) {
+        if (u < emitters[i].cdf) {
+            e = emitters[i];
+            break;
+        }
+    }
+    let u1 = rng_next(rng);
+    let u2 = rng_next(rng);
+    if (e.kind == EMIT_POINT) {
+        return Emission(e.vector, uniform_sphere(u1, u2), e.power);
+    }
+    var dir = e.vector;
+    if (e.kind == EMIT_ENVIRONMENT) {
+        dir = uniform_sphere(u1, u2);
+    }
+    // A disk of the bounding sphere's radius, perpendicular to dir, before the volume.
+    let u3 = rng_next(rng);
+    let u4 = rng_next(rng);
+    let radius = bounding_radius();
+    let centre = 0.5 * (scene.box_min + scene.box_max);
+    let basis = orthonormal_basis(dir);
+    let r = radius * sqrt(u3);
+    let phi = 2.0 * PI * u4;
+    let origin = centre - dir * (2.0 * radius) + basis * vec3<f32>(r * cos(phi), r * sin(phi), 0.0);
+    return Emission(origin, dir, e.power);
+}
+
+@compute @workgroup_size(64)
+fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let i = linear_index(gid, groups);
+    if (i >= photon.dispatch_paths) {
+        return;
+    }
+    let p = photon.path_offset + i;
+    let bounces = photon.bounces;
+    let base = p * bounces;
+
+    var start = -1;
+    var old_count = 0u;
+    if (photon.mode == MODE_UPDATE) {
+        let path = paths[p];
+        if (!hist_hits_query(path.end_lo, path.end_hi)) {
+            return;
+        }
+        old_count = path.count;
+        // Walk back to the last interaction the edit did not affect.
+        var j = i32(path.count) - 1;
+        while (j >= 0) {
+            let r = records[base + u32(j)];
+            if (!hist_hits_query(r.hist_lo, r.hist_hi)) {
+                break;
+            }
+            j -= 1;
+        }
+        start = j;
+        atomicAdd(&counters[COUNTER_RETRACED], 1u);
+    }
+
+    var position = vec3<f32>(0.0);
+    var direction = vec3<f32>(0.0, 0.0, 1.0);
+    var power = vec3<f32>(0.0);
+    var hist = vec2<u32>(0u);
+    var k = 0u;
+    if (start >= 0) {
+        let r = records[base + u32(start)];
+        position = r.position;
+        direction = r.direction;
+        power = r.power;
+        hist = vec2<u32>(r.hist_lo, r.hist_hi);
+        k = u32(start) + 1u;
+    }
+    var count = k;
+    loop {
+        if (k >= bounces) {
+            break;
+        }
+        var rng = rng_new(scene.seed, p, k);
+        var origin: vec3<f32>;
+        var dir: vec3<f32>;
+        if (k == 0u) {
+            let e = emit(&rng);
+            origin = e.origin;
+            dir = e.direction;
+            power = e.power;
+        } else {
+            if (all(power <= vec3<f32>(0.0))) {
+                break;
+            }
+            let u1 = rng_next(&rng);
+            let u2 = rng_next(&rng);
+            dir = sample_hg(direction, scene.g, u1, u2);
+            origin = position;
+        }
+        let hit = intersect_box(origin, dir, scene.box_min, scene.box_max);
+        if (hit.x >= hit.y || photon.majorant <= 0.0) {
+            break;
+        }
+        var t = hit.x;
+        var collided = false;
+        var albedo = vec3<f32>(0.0);
+        loop {
+            t += -log(1.0 - rng_next(&rng)) / photon.majorant;
+            if (t >= hit.y) {
+                break;
+            }
+            let v = data_at(origin + dir * t);
+            hist |= hist_bit(v);
+            let m = classify(v);
+            if (rng_next(&rng) * photon.majorant < m.a * scene.density_scale) {
+                collided = true;
+                albedo = m.rgb;
+                break;
+            }
+        }
+        if (!collided) {
+            break;
+        }
+        position = origin + dir * t;
+        direction = dir;
+        power *= albedo;
+        store_record(base + k, PhotonRecord(position, grid_index(grid_cell3(position)), power, hist.x, direction, hist.y));
+        k += 1u;
+        count = k;
+    }
+    // Interactions past the end of the path hold no photon.
+    for (var r = count; r < bounces; r++) {
+        if (photon.mode == MODE_FULL || r < old_count) {
+            store_record(base + r, PhotonRecord(vec3<f32>(0.0), CELL_NONE, vec3<f32>(0.0), 0u, vec3<f32>(0.0), 0u));
+        }
+    }
+    paths[p] = PhotonPath(count, hist.x, hist.y, 0u);
+}
+
+fn bounding_radius() -> f32 {
+    return 0.5 * length(scene.box_max - scene.box_min) * 1.001;
+}
