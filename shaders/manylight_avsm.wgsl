@@ -53,6 +53,9 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let face = gid.y / r;
     let row = gid.y % r;
     let vl_index = gid.z;
+    if (vl_index >= ml.count) {
+        return;
+    }
     let vl = vls[vl_index];
     let base = avsm_base(vl_index, face, gid.x, row);
     if (all(vl.power <= vec3<f32>(0.0))) {

@@ -3,9 +3,13 @@
 // spherical light's geometry term. Rust twin: server/engine/src/passes/manylight.rs.
 
 struct ManylightParams {
-    // Light paths traced; each leaves at most `vls_per_path` virtual lights.
-    paths: u32,
-    vls_per_path: u32,
+    // Virtual-light slots, and how many hold a light.
+    capacity: u32,
+    count: u32,
+    // First path index of a light-tracing dispatch (paths are traced in batches until the
+    // slots are full), and the most virtual lights one path leaves.
+    first_path: u32,
+    max_bounces: u32,
     // Texels per cube-face edge and nodes per texel of every AVSM.
     face_res: u32,
     nodes: u32,
@@ -16,6 +20,9 @@ struct ManylightParams {
     vsl_radius: f32,
     // Density scale the AVSMs were built with: lookups rescale T^(density/built) (paper §5).
     built_density: f32,
+    // 1 / light paths traced: a virtual light's power is its path's share of the emission.
+    power_scale: f32,
+    pad0: f32,
 }
 
 const MODE_AVSM_POINT: u32 = 0u;

@@ -69,7 +69,7 @@ fn avsm_transmittance(j: u32, light_pos: vec3<f32>, x: vec3<f32>) -> f32 {
 // Radiance scattered at x toward −view_dir from every virtual light, per unit albedo at x.
 fn gather(x: vec3<f32>, view_dir: vec3<f32>, jitter: f32) -> vec3<f32> {
     var s = vec3<f32>(0.0);
-    let end = min(chunk.first + chunk.count, ml.paths * ml.vls_per_path);
+    let end = min(chunk.first + chunk.count, ml.count);
     let rescale = scene.density_scale / max(ml.built_density, 1e-12);
     for (var j = chunk.first; j < end; j++) {
         let vl = vls[j];
@@ -88,7 +88,7 @@ fn gather(x: vec3<f32>, view_dir: vec3<f32>, jitter: f32) -> vec3<f32> {
         if (tr <= 0.0) {
             continue;
         }
-        let emitted = vl.power * phase_hg(dot(vl.direction, toward), scene.g);
+        let emitted = vl.power * ml.power_scale * phase_hg(dot(vl.direction, toward), scene.g);
         s += emitted * vsl_geometry(d, ml.vsl_radius) * tr * phase_hg(dot(toward, -view_dir), scene.g);
     }
     return s;

@@ -2,8 +2,9 @@
 // 2013, §3.1): a light chosen by power, an emitted ray (directional: a disk covering the
 // volume's bounding sphere; point: a uniform direction; environment: an inward cosine-weighted
 // ray from the bounding sphere), then delta tracking to each real collision, where a virtual
-// light is stored with the path's power × albedo, Russian roulette on the throughput, and
-// Henyey-Greenstein scattering. Slots a path does not fill get zero power.
+// light is appended with the path's power × albedo (before the 1/paths normalisation, which
+// the gather applies), Russian roulette on the throughput, and Henyey-Greenstein scattering.
+// Batches of paths run until the slots are full ("spawn paths until N virtual lights").
 // Rust twin: server/engine/src/passes/manylight.rs.
 
 @group(0) @binding(0) var<uniform> scene: SceneUniforms;
@@ -13,6 +14,7 @@
 @group(0) @binding(5) var<storage, read> cell_max_opacity: array<f32>;
 @group(0) @binding(6) var<uniform> ml: ManylightParams;
 @group(0) @binding(7) var<storage, read_write> vls: array<VirtualLight>;
+@group(0) @binding(10) var<storage, read_write> stored: atomic<u32>;
 
 fn uniform_direction(u1: f32, u2: f32) -> vec3<f32> {
     let z = 1.0 - 2.0 * u1;
@@ -27,10 +29,7 @@ fn luminance(c: vec3<f32>) -> f32 {
 
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let path = gid.x;
-    if (path >= ml.paths) {
-        return;
-    }
+    let path = ml.first_path + gid.x;
     var rng = rng_new(ml.seed, path, 0x7f4a7c15u);
     let center = 0.5 * (scene.box_min + scene.box_max);
     let radius = 0.5 * length(scene.box_max - scene.box_min);
@@ -85,12 +84,10 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             dir = normalize(orthonormal_basis(-n) * local);
         }
     }
-    var weight = power / f32(ml.paths);
+    var weight = power;
     let start = max(weight.x, max(weight.y, weight.z));
     var alive = start > 0.0;
-    for (var k = 0u; k < ml.vls_per_path; k++) {
-        let slot = path * ml.vls_per_path + k;
-        var vl = VirtualLight(vec3<f32>(0.0), 0.0, vec3<f32>(0.0), 0.0, dir, 0.0);
+    for (var k = 0u; k < ml.max_bounces; k++) {
         if (alive) {
             let hit = intersect_box(origin, dir, scene.box_min, scene.box_max);
             var event = vec2<f32>(0.0, 0.0);
@@ -102,7 +99,10 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             } else {
                 let p = origin + dir * event.x;
                 weight *= medium_at(p).rgb;
-                vl = VirtualLight(p, 0.0, weight, 0.0, dir, 0.0);
+                let slot = atomicAdd(&stored, 1u);
+                if (slot < ml.capacity) {
+                    vls[slot] = VirtualLight(p, 0.0, weight, 0.0, dir, 0.0);
+                }
                 // Roulette on the throughput relative to the emitted power.
                 let survive = min(1.0, max(weight.x, max(weight.y, weight.z)) / start);
                 if (rng_next(&rng) >= survive) {
@@ -116,6 +116,5 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                 }
             }
         }
-        vls[slot] = vl;
     }
 }

@@ -7,7 +7,7 @@ use std::time::Duration;
 use anyhow::Context;
 use clap::{Parser, Subcommand};
 use tokio_util::sync::CancellationToken;
-use voxlight_server::{Server, ServerConfig, bench, loadgen, offline};
+use voxlight_server::{Server, ServerConfig, bench, bench_manylight, loadgen, offline};
 
 #[derive(Parser)]
 #[command(
@@ -102,7 +102,7 @@ enum Command {
         #[arg(long)]
         pfm: Option<PathBuf>,
     },
-    /// Run a benchmark (`raymarch`, `tf-edit`).
+    /// Run a benchmark (`raymarch`, `tf-edit`, `manylight`).
     Bench {
         name: String,
         /// Technique measured by `tf-edit`.
@@ -138,6 +138,18 @@ enum Command {
         /// Timed iterations per size.
         #[arg(long, default_value_t = 8)]
         iterations: u32,
+        /// `manylight`: virtual-light counts to measure.
+        #[arg(long, value_delimiter = ',', default_value = "64,128,256,512")]
+        vls: Vec<u32>,
+        /// `manylight`: AVSM texels per cube-face edge.
+        #[arg(long, default_value_t = 24)]
+        face_res: u32,
+        /// `manylight`: AVSM nodes per texel.
+        #[arg(long, default_value_t = 8)]
+        nodes: u32,
+        /// `manylight`: samples per pixel of the `pathtrace` reference.
+        #[arg(long, default_value_t = 64)]
+        reference_spp: u32,
     },
 }
 
@@ -254,6 +266,10 @@ fn run() -> anyhow::Result<()> {
             data,
             sizes,
             iterations,
+            vls,
+            face_res,
+            nodes,
+            reference_spp,
         } => {
             let data = data.or_else(voxlight_volumes::testdata::shared_data_dir);
             let result = match name.as_str() {
@@ -272,7 +288,18 @@ fn run() -> anyhow::Result<()> {
                     bounces: bounces.max(1),
                     segments: segments.max(1),
                 })?,
-                other => anyhow::bail!("unknown benchmark `{other}`; available: raymarch, tf-edit"),
+                "manylight" => bench_manylight::manylight(&bench_manylight::ManylightBench {
+                    data_dir: data.as_deref(),
+                    size: size.max(8),
+                    vls: &vls,
+                    face_res: face_res.max(1),
+                    nodes,
+                    iterations: iterations.max(1),
+                    reference_spp: reference_spp.max(1),
+                })?,
+                other => anyhow::bail!(
+                    "unknown benchmark `{other}`; available: raymarch, tf-edit, manylight"
+                ),
             };
             if json {
                 println!("{result}");

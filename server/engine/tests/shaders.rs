@@ -123,7 +123,8 @@ fn rust_and_wgsl_layouts_agree() {
         &gather,
         "ManylightParams",
         size_of::<ManylightParams>(),
-        fields!(ManylightParams: paths, vls_per_path, face_res, nodes, mode, seed, vsl_radius, built_density),
+        fields!(ManylightParams: capacity, count, first_path, max_bounces, face_res, nodes, mode, seed,
+            vsl_radius, built_density, power_scale, pad0),
     );
     assert_layout(
         &gather,

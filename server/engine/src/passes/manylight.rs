@@ -12,14 +12,18 @@ use crate::Gpu;
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
 pub struct ManylightParams {
-    pub paths: u32,
-    pub vls_per_path: u32,
+    pub capacity: u32,
+    pub count: u32,
+    pub first_path: u32,
+    pub max_bounces: u32,
     pub face_res: u32,
     pub nodes: u32,
     pub mode: u32,
     pub seed: u32,
     pub vsl_radius: f32,
     pub built_density: f32,
+    pub power_scale: f32,
+    pub pad0: f32,
 }
 
 /// Matches `VirtualLight` in manylight_common.wgsl.
@@ -106,6 +110,7 @@ impl ManylightPasses {
                     },
                     count: None,
                 },
+                storage_entry(10, false),
             ],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {

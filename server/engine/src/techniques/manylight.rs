@@ -20,9 +20,10 @@ use crate::{Change, Engine, EngineError, GpuVolume, Scene};
 /// The knobs of `manylight`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ManylightConfig {
-    /// Light paths traced; each leaves at most `vls_per_path` virtual lights.
-    pub paths: u32,
-    pub vls_per_path: u32,
+    /// Virtual lights: light paths are traced until this many scattering events are stored.
+    pub vls: u32,
+    /// Most virtual lights one path leaves (scattering orders gathered: up to this + 1).
+    pub max_bounces: u32,
     /// AVSM texels per cube-face edge (the paper: 40–48).
     pub face_res: u32,
     /// AVSM nodes per texel (the paper: 8–12).
@@ -37,21 +38,25 @@ impl Default for ManylightConfig {
     /// 1000 VLs at 48² × 8.
     fn default() -> Self {
         Self {
-            paths: 64,
-            vls_per_path: 4,
+            vls: 256,
+            max_bounces: 8,
             face_res: 16,
             nodes: 8,
             mode: TransmittanceMode::AvsmTrilinear,
-            vsl_radius: 0.03,
+            vsl_radius: 0.02,
         }
     }
 }
 
 impl ManylightConfig {
     pub fn vl_count(&self) -> u32 {
-        self.paths * self.vls_per_path
+        self.vls
     }
 }
+
+/// Paths traced per stored virtual light at most, before giving up on filling the slots (a
+/// nearly empty medium).
+const MAX_PATHS_PER_VL: u32 = 256;
 
 /// How long the last rebuild of the virtual lights and their shadow maps took.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -68,6 +73,12 @@ pub struct Manylight {
     avsm: wgpu::Buffer,
     /// Gather chunk descriptors, one per `CHUNK_STRIDE`.
     chunks: wgpu::Buffer,
+    /// Virtual lights produced by the current batches (atomic counter; may pass capacity).
+    stored: wgpu::Buffer,
+    /// Virtual lights held, and light paths traced to produce them.
+    count: u32,
+    paths_traced: u64,
+    produced: u64,
     bind_group: wgpu::BindGroup,
     /// The virtual lights and shadow maps no longer match the scene.
     stale: bool,
@@ -81,8 +92,8 @@ impl Manylight {
         scene: &Scene,
         config: ManylightConfig,
     ) -> Result<Self, EngineError> {
-        if config.paths == 0
-            || config.vls_per_path == 0
+        if config.vls == 0
+            || config.max_bounces == 0
             || config.face_res == 0
             || !(2..=MAX_NODES).contains(&config.nodes)
             || !config.vsl_radius.is_finite()
@@ -136,7 +147,12 @@ impl Manylight {
             most_chunks as u64 * CHUNK_STRIDE,
             wgpu::BufferUsages::UNIFORM,
         );
-        let bind_group = bind_group(engine, &base, &params, &vls, &avsm, &chunks);
+        let stored = buffer(
+            "manylight stored counter",
+            4,
+            wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+        );
+        let bind_group = bind_group(engine, &base, &params, &vls, &avsm, &chunks, &stored);
         let mut technique = Self {
             base,
             config,
@@ -144,6 +160,10 @@ impl Manylight {
             vls,
             avsm,
             chunks,
+            stored,
+            count: 0,
+            paths_traced: 0,
+            produced: 0,
             bind_group,
             stale: true,
             last_build: BuildTimes::default(),
@@ -164,18 +184,8 @@ impl Manylight {
     }
 
     fn write_params(&mut self, engine: &Engine, scene: &Scene) {
-        let params = ManylightParams {
-            paths: self.config.paths,
-            vls_per_path: self.config.vls_per_path,
-            face_res: self.config.face_res,
-            nodes: self.config.nodes,
-            mode: self.config.mode as u32,
-            seed: scene.seed,
-            vsl_radius: self.config.vsl_radius,
-            built_density: scene.params.density_scale,
-        };
+        self.write_params_from(engine, scene, 0);
         let queue = &engine.gpu.queue;
-        queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
         let size = gather_chunk(self.config.mode);
         for c in 0..self.chunk_count() {
             let chunk = GatherChunk {
@@ -192,6 +202,34 @@ impl Manylight {
         }
     }
 
+    /// The parameters, with `first_path` for a light-tracing batch.
+    fn write_params_from(&self, engine: &Engine, scene: &Scene, first_path: u64) {
+        // Stored lights stand for all produced ones when the last batch overflowed the slots.
+        let power_scale = if self.paths_traced == 0 || self.count == 0 {
+            0.0
+        } else {
+            (self.produced as f64 / self.count as f64 / self.paths_traced as f64) as f32
+        };
+        let params = ManylightParams {
+            capacity: self.config.vls,
+            count: self.count,
+            first_path: first_path as u32,
+            max_bounces: self.config.max_bounces,
+            face_res: self.config.face_res,
+            nodes: self.config.nodes,
+            mode: self.config.mode as u32,
+            seed: scene.seed,
+            vsl_radius: self.config.vsl_radius,
+            built_density: scene.params.density_scale,
+            power_scale,
+            pad0: 0.0,
+        };
+        engine
+            .gpu
+            .queue
+            .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+    }
+
     fn chunk_count(&self) -> u32 {
         self.config
             .vl_count()
@@ -200,22 +238,44 @@ impl Manylight {
 
     /// Traces the virtual lights and builds their shadow maps now, timing each on its own.
     pub fn rebuild(&mut self, engine: &Engine, scene: &Scene) -> Result<BuildTimes, EngineError> {
-        self.write_params(engine, scene);
         // The passes read the scene uniforms of the next iteration.
-        let mut encoder = self.encoder(engine, "manylight build");
         self.base.encode_uniforms(engine, scene)?;
         let started = Instant::now();
-        {
-            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("manylight vls"),
-                timestamp_writes: None,
-            });
-            pass.set_pipeline(&engine.manylight.vls);
-            pass.set_bind_group(0, &self.bind_group, &[0]);
-            pass.dispatch_workgroups(self.config.paths.div_ceil(64), 1, 1);
+        let queue = &engine.gpu.queue;
+        queue.write_buffer(&self.stored, 0, bytemuck::bytes_of(&0u32));
+        let capacity = self.config.vls as u64;
+        let (mut traced, mut produced) = (0u64, 0u64);
+        let mut batch = capacity.div_ceil(64) * 64;
+        // Batches of paths until the slots are full ("keep spawning paths until N VLs").
+        while produced < capacity && traced < capacity * MAX_PATHS_PER_VL as u64 {
+            self.write_params_from(engine, scene, traced);
+            let mut encoder = self.encoder(engine, "manylight vls");
+            {
+                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("manylight vls"),
+                    timestamp_writes: None,
+                });
+                pass.set_pipeline(&engine.manylight.vls);
+                pass.set_bind_group(0, &self.bind_group, &[0]);
+                pass.dispatch_workgroups((batch / 64) as u32, 1, 1);
+            }
+            engine.gpu.queue.submit([encoder.finish()]);
+            traced += batch;
+            let counter = engine.gpu.read_buffer(&self.stored)?;
+            produced = u32::from_le_bytes(counter[..4].try_into().unwrap_or([0; 4])) as u64;
+            // Size the next batch by the yield so far (at least one workgroup, at most 2²⁰).
+            let per_path = produced as f64 / traced as f64;
+            let wanted = if per_path > 0.0 {
+                (capacity.saturating_sub(produced) as f64 / per_path).ceil() as u64
+            } else {
+                traced * 4
+            };
+            batch = wanted.clamp(64, 1 << 20).div_ceil(64) * 64;
         }
-        engine.gpu.queue.submit([encoder.finish()]);
-        engine.gpu.wait_idle()?;
+        self.paths_traced = traced;
+        self.produced = produced;
+        self.count = produced.min(capacity) as u32;
+        self.write_params(engine, scene);
         let vls = started.elapsed();
         let started = Instant::now();
         let mut encoder = self.encoder(engine, "manylight avsm");
@@ -227,7 +287,7 @@ impl Manylight {
             pass.set_pipeline(&engine.manylight.avsm);
             pass.set_bind_group(0, &self.bind_group, &[0]);
             let r = self.config.face_res;
-            pass.dispatch_workgroups(r.div_ceil(8), (6 * r).div_ceil(8), self.config.vl_count());
+            pass.dispatch_workgroups(r.div_ceil(8), (6 * r).div_ceil(8), self.count.max(1));
         }
         engine.gpu.queue.submit([encoder.finish()]);
         engine.gpu.wait_idle()?;
@@ -250,6 +310,37 @@ impl Manylight {
     fn iterate(&mut self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
         let mut encoder = self.encoder(engine, "manylight iteration");
         self.base.encode_next(engine, scene, &mut encoder)?;
+        self.encode_gather(engine, &mut encoder);
+        engine.gpu.queue.submit([encoder.finish()]);
+        self.base.advance();
+        Ok(())
+    }
+
+    /// Runs `iterations` gather passes alone (no single scattering) and waits: the cost of
+    /// multiple scattering with the current transmittance mode (benchmarks).
+    pub fn time_gather(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        iterations: u32,
+    ) -> Result<Duration, EngineError> {
+        if self.stale {
+            self.rebuild(engine, scene)?;
+        }
+        self.base.encode_uniforms(engine, scene)?;
+        engine.gpu.wait_idle()?;
+        let started = Instant::now();
+        for _ in 0..iterations {
+            let mut encoder = self.encoder(engine, "manylight gather timing");
+            self.encode_gather(engine, &mut encoder);
+            engine.gpu.queue.submit([encoder.finish()]);
+        }
+        engine.gpu.wait_idle()?;
+        Ok(started.elapsed())
+    }
+
+    /// The gather dispatches of one iteration, one per chunk of virtual lights.
+    fn encode_gather(&self, engine: &Engine, encoder: &mut wgpu::CommandEncoder) {
         let (width, height) = self.base.size();
         let tile = crate::passes::TILE;
         for c in 0..self.chunk_count() {
@@ -261,9 +352,21 @@ impl Manylight {
             pass.set_bind_group(0, &self.bind_group, &[(c as u64 * CHUNK_STRIDE) as u32]);
             pass.dispatch_workgroups(width.div_ceil(tile), height.div_ceil(tile), 1);
         }
-        engine.gpu.queue.submit([encoder.finish()]);
-        self.base.advance();
-        Ok(())
+    }
+
+    /// Virtual lights held after the last build, and the light paths traced for them.
+    pub fn virtual_light_count(&self) -> (u32, u64) {
+        (self.count, self.paths_traced)
+    }
+
+    /// What each stored light's power is multiplied by in the gather (1 / paths, corrected
+    /// for lights dropped when the last batch overflowed).
+    pub fn power_scale(&self) -> f64 {
+        if self.count == 0 || self.paths_traced == 0 {
+            0.0
+        } else {
+            self.produced as f64 / self.count as f64 / self.paths_traced as f64
+        }
     }
 
     /// The virtual lights as traced (for tests).
@@ -280,6 +383,7 @@ fn bind_group(
     vls: &wgpu::Buffer,
     avsm: &wgpu::Buffer,
     chunks: &wgpu::Buffer,
+    stored: &wgpu::Buffer,
 ) -> wgpu::BindGroup {
     let b = base.bindings();
     fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
@@ -315,6 +419,7 @@ fn bind_group(
                         size: wgpu::BufferSize::new(size_of::<GatherChunk>() as u64),
                     }),
                 },
+                entry(10, stored),
             ],
         })
 }
@@ -340,6 +445,7 @@ impl Technique for Manylight {
                     &self.vls,
                     &self.avsm,
                     &self.chunks,
+                    &self.stored,
                 );
             }
             // New lights, medium or phase function: new light paths and shadow maps.

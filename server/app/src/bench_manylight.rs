@@ -1,0 +1,217 @@
+//! `voxlight bench manylight`: the paper's Table 2 experiment (Weber et al. 2013) on the adapter
+//! at hand. For each virtual-light count: the time to trace the lights and build their shadow
+//! maps, the time of one multiple-scattering gather with ray-marched transmittance and with
+//! AVSM point and trilinear lookups, and each one's error against a `pathtrace` reference; then
+//! the time from a TF edit to the first frame that shows it.
+
+use std::path::Path;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use serde_json::json;
+use voxlight_engine::passes::manylight::TransmittanceMode;
+use voxlight_engine::techniques::manylight::{Manylight, ManylightConfig};
+use voxlight_engine::{Change, Engine, GpuVolume, Renderer, Scene};
+use voxlight_protocol::{Camera, Viewport, default_lights};
+
+pub struct ManylightBench<'a> {
+    pub data_dir: Option<&'a Path>,
+    /// Image edge in pixels (the paper: 800).
+    pub size: u32,
+    /// Virtual-light counts to measure.
+    pub vls: &'a [u32],
+    /// AVSM texels per cube-face edge (the paper: 40–48) and nodes per texel (8–12).
+    pub face_res: u32,
+    pub nodes: u32,
+    /// Gather passes timed per mode.
+    pub iterations: u32,
+    /// Samples per pixel of the `pathtrace` reference.
+    pub reference_spp: u32,
+}
+
+/// Most virtual lights one light path leaves.
+const MAX_BOUNCES: u32 = 8;
+/// Progressive iterations of the images compared with the reference.
+const IMAGE_ITERATIONS: u32 = 16;
+
+fn render(
+    engine: &Engine,
+    renderer: &mut Renderer,
+    scene: &Scene,
+) -> anyhow::Result<Vec<[f32; 3]>> {
+    while !renderer.converged(scene) {
+        renderer.step(engine, scene, Duration::from_secs(5))?;
+    }
+    Ok(renderer.read_hdr(engine)?)
+}
+
+/// Relative RMS error over the image (RMS of the difference over the reference's mean).
+fn relative_rms(image: &[[f32; 3]], reference: &[[f32; 3]]) -> f64 {
+    let n = (3 * reference.len()) as f64;
+    let mean = reference.iter().flatten().map(|&v| v as f64).sum::<f64>() / n;
+    let sq: f64 = image
+        .iter()
+        .flatten()
+        .zip(reference.iter().flatten())
+        .map(|(&a, &b)| (a as f64 - b as f64).powi(2))
+        .sum();
+    (sq / n).sqrt() / mean.max(1e-12)
+}
+
+fn manylight_renderer(
+    engine: &Engine,
+    volume: &Arc<GpuVolume>,
+    scene: &Scene,
+    config: ManylightConfig,
+) -> anyhow::Result<Renderer> {
+    let technique = Manylight::new(engine, volume.clone(), scene, config)?;
+    Ok(Renderer::with_technique(
+        engine,
+        Box::new(technique),
+        volume.clone(),
+        scene,
+    )?)
+}
+
+pub fn manylight(options: &ManylightBench) -> anyhow::Result<serde_json::Value> {
+    let engine = Engine::new()?;
+    let (dataset, mut volume) = match options.data_dir.map(|d| d.join("vti/bonsai.vti")) {
+        Some(path) if path.is_file() => (
+            "vti/bonsai.vti".to_owned(),
+            voxlight_volumes::load(&path).with_context(|| format!("loading {}", path.display()))?,
+        ),
+        _ => (
+            "phantom:cornell@256".to_owned(),
+            voxlight_volumes::phantom("cornell", 256)?,
+        ),
+    };
+    volume.name = dataset.clone();
+    let gpu_volume = engine.upload_volume(&volume)?;
+    let scene = Scene {
+        camera: Camera::default(),
+        tf: crate::datasets::default_tf(&volume),
+        lights: default_lights(),
+        viewport: Viewport {
+            width: options.size,
+            height: options.size,
+        },
+        target_iterations: IMAGE_ITERATIONS,
+        seed: 3,
+        ..Scene::default()
+    };
+
+    let reference_scene = Scene {
+        target_iterations: options.reference_spp,
+        ..scene.clone()
+    };
+    let started = Instant::now();
+    let mut reference_renderer =
+        engine.create_renderer("pathtrace", gpu_volume.clone(), &reference_scene)?;
+    let reference = render(&engine, &mut reference_renderer, &reference_scene)?;
+    eprintln!(
+        "manylight: pathtrace reference, {} spp, {:.1} s",
+        options.reference_spp,
+        started.elapsed().as_secs_f64()
+    );
+
+    let mut rows = Vec::new();
+    for &slots in options.vls {
+        let config = ManylightConfig {
+            vls: slots.max(1),
+            max_bounces: MAX_BOUNCES,
+            face_res: options.face_res,
+            nodes: options.nodes,
+            mode: TransmittanceMode::AvsmPoint,
+            ..ManylightConfig::default()
+        };
+        let mut technique = Manylight::new(&engine, gpu_volume.clone(), &scene, config)?;
+        technique.rebuild(&engine, &scene)?; // warm-up
+        let build = technique.rebuild(&engine, &scene)?;
+        let (live, paths) = technique.virtual_light_count();
+        let mut gather_ms = |mode| -> anyhow::Result<f64> {
+            technique.set_mode(&engine, &scene, mode);
+            technique.time_gather(&engine, &scene, 1)?; // warm-up
+            let elapsed = technique.time_gather(&engine, &scene, options.iterations)?;
+            Ok(elapsed.as_secs_f64() * 1000.0 / options.iterations as f64)
+        };
+        let rm_ms = gather_ms(TransmittanceMode::RayMarched)?;
+        let point_ms = gather_ms(TransmittanceMode::AvsmPoint)?;
+        let trilinear_ms = gather_ms(TransmittanceMode::AvsmTrilinear)?;
+        let error = |mode| -> anyhow::Result<f64> {
+            let mut renderer = manylight_renderer(
+                &engine,
+                &gpu_volume,
+                &scene,
+                ManylightConfig { mode, ..config },
+            )?;
+            Ok(relative_rms(
+                &render(&engine, &mut renderer, &scene)?,
+                &reference,
+            ))
+        };
+        let row = json!({
+            "vls": config.vl_count(),
+            "vls_stored": live,
+            "light_paths": paths,
+            "vl_build_ms": build.vls.as_secs_f64() * 1000.0,
+            "avsm_build_ms": build.avsm.as_secs_f64() * 1000.0,
+            "rm_ms": rm_ms,
+            "avsm_point_ms": point_ms,
+            "avsm_trilinear_ms": trilinear_ms,
+            "speedup": rm_ms / point_ms,
+            "speedup_trilinear": rm_ms / trilinear_ms,
+            "error_rm": error(TransmittanceMode::RayMarched)?,
+            "error_avsm_point": error(TransmittanceMode::AvsmPoint)?,
+            "error_avsm_trilinear": error(TransmittanceMode::AvsmTrilinear)?,
+        });
+        eprintln!("manylight: {row}");
+        rows.push(row);
+    }
+
+    // From a TF edit to the first frame that shows it (rebuild, one iteration, tone map,
+    // readback), with the largest VL count and trilinear lookups.
+    let largest = options.vls.iter().copied().max().unwrap_or(256);
+    let config = ManylightConfig {
+        vls: largest.max(1),
+        max_bounces: MAX_BOUNCES,
+        face_res: options.face_res,
+        nodes: options.nodes,
+        mode: TransmittanceMode::AvsmTrilinear,
+        ..ManylightConfig::default()
+    };
+    let mut renderer = manylight_renderer(&engine, &gpu_volume, &scene, config)?;
+    render(&engine, &mut renderer, &scene)?;
+    let mut edited = scene.clone();
+    for point in &mut edited.tf.points {
+        point.opacity *= 0.7;
+    }
+    let change = Change::tf(&scene.tf, &edited.tf);
+    let started = Instant::now();
+    renderer.apply(&engine, &edited, &change)?;
+    renderer.step(&engine, &edited, Duration::ZERO)?;
+    renderer.frame(&engine, &edited)?;
+    let first_frame_ms = started.elapsed().as_secs_f64() * 1000.0;
+    // One ordinary frame (an iteration, tone map, readback) for comparison.
+    let started = Instant::now();
+    renderer.step(&engine, &edited, Duration::ZERO)?;
+    renderer.frame(&engine, &edited)?;
+    let frame_ms = started.elapsed().as_secs_f64() * 1000.0;
+
+    Ok(json!({
+        "bench": "manylight",
+        "adapter": engine.gpu.adapter_name(),
+        "software_renderer": engine.gpu.is_software(),
+        "dataset": dataset,
+        "dims": volume.dims,
+        "size": options.size,
+        "face_res": options.face_res,
+        "nodes": options.nodes,
+        "max_bounces": MAX_BOUNCES,
+        "reference_spp": options.reference_spp,
+        "image_iterations": IMAGE_ITERATIONS,
+        "rows": rows,
+        "tf_edit_first_frame_ms": first_frame_ms,
+        "frame_ms": frame_ms,
+    }))
+}
