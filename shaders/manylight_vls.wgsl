@@ -2,9 +2,11 @@
 // 2013, §3.1): a light chosen by power, an emitted ray (directional: a disk covering the
 // volume's bounding sphere; point: a uniform direction; environment: an inward cosine-weighted
 // ray from the bounding sphere), then delta tracking to each real collision, where a virtual
-// light is appended with the path's power × albedo (before the 1/paths normalisation, which
+// light is stored with the path's power × albedo (before the 1/paths normalisation, which
 // the gather applies), Russian roulette on the throughput, and Henyey-Greenstein scattering.
-// Batches of paths run until the slots are full ("spawn paths until N virtual lights").
+// Each path writes `max_bounces` slots of a batch's scratch buffer (unused ones with zero
+// power); the CPU keeps whole paths in order until N virtual lights are stored, so the set is
+// the same on every run ("spawn paths until N virtual lights").
 // Rust twin: server/engine/src/passes/manylight.rs.
 
 @group(0) @binding(0) var<uniform> scene: SceneUniforms;
@@ -13,8 +15,7 @@
 @group(0) @binding(3) var<storage, read> lights: array<GpuLight>;
 @group(0) @binding(5) var<storage, read> cell_max_opacity: array<f32>;
 @group(0) @binding(6) var<uniform> ml: ManylightParams;
-@group(0) @binding(7) var<storage, read_write> vls: array<VirtualLight>;
-@group(0) @binding(10) var<storage, read_write> stored: atomic<u32>;
+@group(0) @binding(10) var<storage, read_write> scratch: array<VirtualLight>;
 
 fn uniform_direction(u1: f32, u2: f32) -> vec3<f32> {
     let z = 1.0 - 2.0 * u1;
@@ -88,6 +89,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let start = max(weight.x, max(weight.y, weight.z));
     var alive = start > 0.0;
     for (var k = 0u; k < ml.max_bounces; k++) {
+        var vl = VirtualLight(vec3<f32>(0.0), 0.0, vec3<f32>(0.0), 0.0, dir, 0.0);
         if (alive) {
             let hit = intersect_box(origin, dir, scene.box_min, scene.box_max);
             var event = vec2<f32>(0.0, 0.0);
@@ -99,10 +101,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             } else {
                 let p = origin + dir * event.x;
                 weight *= medium_at(p).rgb;
-                let slot = atomicAdd(&stored, 1u);
-                if (slot < ml.capacity) {
-                    vls[slot] = VirtualLight(p, 0.0, weight, 0.0, dir, 0.0);
-                }
+                vl = VirtualLight(p, 0.0, weight, 0.0, dir, 0.0);
                 // Roulette on the throughput relative to the emitted power.
                 let survive = min(1.0, max(weight.x, max(weight.y, weight.z)) / start);
                 if (rng_next(&rng) >= survive) {
@@ -116,5 +115,6 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                 }
             }
         }
+        scratch[gid.x * ml.max_bounces + k] = vl;
     }
 }

@@ -176,3 +176,58 @@ fn gathered_multiple_scattering_agrees_with_the_path_tracer() {
         "manylight {m}, pathtrace {r}, single {one}"
     );
 }
+
+#[test]
+fn a_tf_edit_answers_at_once_then_rebuilds_to_the_fresh_result() {
+    let (_, volume) = sphere(32);
+    let engine = engine();
+    let s = scene(
+        ramp_tf(0.9),
+        vec![Light::Directional {
+            direction: [0.3, 0.8, -0.5],
+            irradiance: [3.0; 3],
+        }],
+        12.0,
+        24,
+        4,
+    );
+    let config = ManylightConfig {
+        vls: 256,
+        face_res: 8,
+        ..ManylightConfig::default()
+    };
+    let mut technique = Manylight::new(engine, volume.clone(), &s, config).expect("manylight");
+    while technique.iteration() < s.target_iterations {
+        technique
+            .step(engine, &s, Duration::from_secs(10))
+            .expect("step");
+    }
+    let paths_before = technique.virtual_light_count().1;
+    let mut edited = s.clone();
+    edited.tf = ramp_tf(0.5);
+    let change = voxlight_engine::Change::tf(&s.tf, &edited.tf);
+    technique.apply(engine, &edited, &change).expect("apply");
+    // The first step after the edit is one iteration with the previous virtual lights.
+    let report = technique
+        .step(engine, &edited, Duration::from_secs(10))
+        .expect("preview");
+    assert_eq!((report.iterations_done, technique.iteration()), (1, 1));
+    assert_eq!(technique.virtual_light_count().1, paths_before);
+    // Then the lights are traced again and the picture restarts.
+    while technique.iteration() < edited.target_iterations {
+        technique
+            .step(engine, &edited, Duration::from_secs(10))
+            .expect("step");
+    }
+    let mut renderer =
+        Renderer::with_technique(engine, Box::new(technique), volume.clone(), &edited)
+            .expect("renderer");
+    let _ = renderer.step(engine, &edited, Duration::ZERO);
+    let incremental = renderer.read_hdr(engine).expect("hdr");
+    let fresh = render_manylight(volume, &edited, config);
+    let (a, b) = (mean(&incremental), mean(&fresh));
+    assert!(
+        (a / b - 1.0).abs() < 1e-3,
+        "after the rebuild {a} vs fresh {b}"
+    );
+}

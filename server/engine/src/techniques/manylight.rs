@@ -4,7 +4,10 @@
 //! transmittance from each VSL read from its adaptive volumetric shadow map (AVSM) or, as the
 //! baseline, ray marched. The VSLs and AVSMs are built when the session starts and rebuilt
 //! after edits of the TF, lights or parameters; iterations then refine the picture (pixel and
-//! scattering-location jitter) with the same virtual lights.
+//! scattering-location jitter) with the same virtual lights. After an edit the first frame
+//! reuses the previous virtual lights and shadow maps (an immediate, approximate response; the
+//! paper first re-weights them with its Eq. 6, which is not done here), then they are rebuilt
+//! and the picture restarts.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -58,6 +61,9 @@ impl ManylightConfig {
 /// nearly empty medium).
 const MAX_PATHS_PER_VL: u32 = 256;
 
+/// Light paths per tracing batch (the scratch buffer holds `max_bounces` lights for each).
+const BATCH_PATHS: u32 = 4096;
+
 /// How long the last rebuild of the virtual lights and their shadow maps took.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct BuildTimes {
@@ -73,15 +79,17 @@ pub struct Manylight {
     avsm: wgpu::Buffer,
     /// Gather chunk descriptors, one per `CHUNK_STRIDE`.
     chunks: wgpu::Buffer,
-    /// Virtual lights produced by the current batches (atomic counter; may pass capacity).
-    stored: wgpu::Buffer,
+    /// One tracing batch's virtual lights, `max_bounces` slots per path.
+    scratch: wgpu::Buffer,
     /// Virtual lights held, and light paths traced to produce them.
     count: u32,
     paths_traced: u64,
-    produced: u64,
     bind_group: wgpu::BindGroup,
     /// The virtual lights and shadow maps no longer match the scene.
     stale: bool,
+    /// After an edit, the next step renders one iteration with the previous virtual lights
+    /// and shadow maps (the first frame comes at once), and the step after rebuilds them.
+    preview_pending: bool,
     pub last_build: BuildTimes,
 }
 
@@ -147,12 +155,12 @@ impl Manylight {
             most_chunks as u64 * CHUNK_STRIDE,
             wgpu::BufferUsages::UNIFORM,
         );
-        let stored = buffer(
-            "manylight stored counter",
-            4,
+        let scratch = buffer(
+            "manylight vl scratch",
+            BATCH_PATHS as u64 * config.max_bounces as u64 * size_of::<VirtualLight>() as u64,
             wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
         );
-        let bind_group = bind_group(engine, &base, &params, &vls, &avsm, &chunks, &stored);
+        let bind_group = bind_group(engine, &base, &params, &vls, &avsm, &chunks, &scratch);
         let mut technique = Self {
             base,
             config,
@@ -160,12 +168,12 @@ impl Manylight {
             vls,
             avsm,
             chunks,
-            stored,
+            scratch,
             count: 0,
             paths_traced: 0,
-            produced: 0,
             bind_group,
             stale: true,
+            preview_pending: false,
             last_build: BuildTimes::default(),
         };
         technique.write_params(engine, scene);
@@ -205,11 +213,7 @@ impl Manylight {
     /// The parameters, with `first_path` for a light-tracing batch.
     fn write_params_from(&self, engine: &Engine, scene: &Scene, first_path: u64) {
         // Stored lights stand for all produced ones when the last batch overflowed the slots.
-        let power_scale = if self.paths_traced == 0 || self.count == 0 {
-            0.0
-        } else {
-            (self.produced as f64 / self.count as f64 / self.paths_traced as f64) as f32
-        };
+        let power_scale = self.power_scale() as f32;
         let params = ManylightParams {
             capacity: self.config.vls,
             count: self.count,
@@ -241,13 +245,13 @@ impl Manylight {
         // The passes read the scene uniforms of the next iteration.
         self.base.encode_uniforms(engine, scene)?;
         let started = Instant::now();
-        let queue = &engine.gpu.queue;
-        queue.write_buffer(&self.stored, 0, bytemuck::bytes_of(&0u32));
-        let capacity = self.config.vls as u64;
-        let (mut traced, mut produced) = (0u64, 0u64);
-        let mut batch = capacity.div_ceil(64) * 64;
-        // Batches of paths until the slots are full ("keep spawning paths until N VLs").
-        while produced < capacity && traced < capacity * MAX_PATHS_PER_VL as u64 {
+        let capacity = self.config.vls as usize;
+        let mut lights: Vec<VirtualLight> = Vec::with_capacity(capacity);
+        let mut traced = 0u64;
+        let per_path_slots = self.config.max_bounces as usize;
+        // Batches of paths; whole paths are kept in order while they fit, so the set does not
+        // depend on scheduling and the paths counted are exactly those kept (unbiased).
+        'batches: while traced < capacity as u64 * MAX_PATHS_PER_VL as u64 {
             self.write_params_from(engine, scene, traced);
             let mut encoder = self.encoder(engine, "manylight vls");
             {
@@ -257,24 +261,34 @@ impl Manylight {
                 });
                 pass.set_pipeline(&engine.manylight.vls);
                 pass.set_bind_group(0, &self.bind_group, &[0]);
-                pass.dispatch_workgroups((batch / 64) as u32, 1, 1);
+                pass.dispatch_workgroups(BATCH_PATHS / 64, 1, 1);
             }
             engine.gpu.queue.submit([encoder.finish()]);
-            traced += batch;
-            let counter = engine.gpu.read_buffer(&self.stored)?;
-            produced = u32::from_le_bytes(counter[..4].try_into().unwrap_or([0; 4])) as u64;
-            // Size the next batch by the yield so far (at least one workgroup, at most 2²⁰).
-            let per_path = produced as f64 / traced as f64;
-            let wanted = if per_path > 0.0 {
-                (capacity.saturating_sub(produced) as f64 / per_path).ceil() as u64
-            } else {
-                traced * 4
-            };
-            batch = wanted.clamp(64, 1 << 20).div_ceil(64) * 64;
+            let bytes = engine.gpu.read_buffer(&self.scratch)?;
+            let batch: &[VirtualLight] = bytemuck::cast_slice(&bytes);
+            for path in batch.chunks_exact(per_path_slots) {
+                let live: Vec<&VirtualLight> = path
+                    .iter()
+                    .filter(|v| v.power.iter().any(|&p| p > 0.0))
+                    .collect();
+                if lights.len() + live.len() > capacity {
+                    break 'batches;
+                }
+                lights.extend(live);
+                traced += 1;
+                if lights.len() == capacity {
+                    break 'batches;
+                }
+            }
+        }
+        if !lights.is_empty() {
+            engine
+                .gpu
+                .queue
+                .write_buffer(&self.vls, 0, bytemuck::cast_slice(&lights));
         }
         self.paths_traced = traced;
-        self.produced = produced;
-        self.count = produced.min(capacity) as u32;
+        self.count = lights.len() as u32;
         self.write_params(engine, scene);
         let vls = started.elapsed();
         let started = Instant::now();
@@ -359,13 +373,12 @@ impl Manylight {
         (self.count, self.paths_traced)
     }
 
-    /// What each stored light's power is multiplied by in the gather (1 / paths, corrected
-    /// for lights dropped when the last batch overflowed).
+    /// What each stored light's power is multiplied by in the gather: 1 / paths kept.
     pub fn power_scale(&self) -> f64 {
-        if self.count == 0 || self.paths_traced == 0 {
+        if self.paths_traced == 0 {
             0.0
         } else {
-            self.produced as f64 / self.count as f64 / self.paths_traced as f64
+            1.0 / self.paths_traced as f64
         }
     }
 
@@ -383,7 +396,7 @@ fn bind_group(
     vls: &wgpu::Buffer,
     avsm: &wgpu::Buffer,
     chunks: &wgpu::Buffer,
-    stored: &wgpu::Buffer,
+    scratch: &wgpu::Buffer,
 ) -> wgpu::BindGroup {
     let b = base.bindings();
     fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
@@ -419,7 +432,7 @@ fn bind_group(
                         size: wgpu::BufferSize::new(size_of::<GatherChunk>() as u64),
                     }),
                 },
-                entry(10, stored),
+                entry(10, scratch),
             ],
         })
 }
@@ -445,11 +458,14 @@ impl Technique for Manylight {
                     &self.vls,
                     &self.avsm,
                     &self.chunks,
-                    &self.stored,
+                    &self.scratch,
                 );
             }
             // New lights, medium or phase function: new light paths and shadow maps.
-            Change::Tf { .. } | Change::Lights | Change::Params => self.stale = true,
+            Change::Tf { .. } | Change::Lights | Change::Params => {
+                self.preview_pending = self.count > 0;
+                self.stale = true;
+            }
             Change::Camera | Change::Iterations => {}
         }
         Ok(())
@@ -463,8 +479,22 @@ impl Technique for Manylight {
     ) -> Result<StepReport, EngineError> {
         let started = Instant::now();
         let target = scene.target_iterations;
+        if self.stale && self.preview_pending && self.base.iteration() < target {
+            // The immediate response: the new TF/lights for single scattering and the view,
+            // the previous virtual lights for multiple scattering; discarded once rebuilt.
+            self.preview_pending = false;
+            self.iterate(engine, scene)?;
+            engine.gpu.wait_idle()?;
+            return Ok(StepReport {
+                iterations_done: 1,
+                iteration: self.base.iteration(),
+                converged: false,
+                gpu_time: started.elapsed(),
+            });
+        }
         if self.stale && self.base.iteration() < target {
             self.rebuild(engine, scene)?;
+            self.base.restart();
         }
         let mut done = 0;
         while self.base.iteration() < target {
