@@ -34,13 +34,25 @@ const MAX_NODES: u32 = 12u;
 
 // A virtual light: a scattering event of a light path. It re-emits `power` (W, albedo
 // applied) with the phase function around `direction` (the light's travel direction there).
+// `tau` is the optical depth of its path from the light per unit density scale, `vertices` the
+// scattering events on that path including this one: together they re-weight the light
+// exactly when only the density scale changes (the paper's Eq. 6 with fixed positions).
 struct VirtualLight {
     position: vec3<f32>,
-    pad0: f32,
+    tau: f32,
     power: vec3<f32>,
-    pad1: f32,
+    vertices: f32,
     direction: vec3<f32>,
-    pad2: f32,
+    pad0: f32,
+}
+
+// Power of virtual light `vl` at density scale `density` when traced at `built`:
+// per vertex (s/s_b)·exp(−(s − s_b)·τ_unit) (σs and the segment's transmittance).
+fn reweighted_power(vl: VirtualLight, density: f32, built: f32) -> vec3<f32> {
+    if (density == built || built <= 0.0) {
+        return vl.power;
+    }
+    return vl.power * pow(density / built, vl.vertices) * exp(-(density - built) * vl.tau);
 }
 
 // Cube face (0..5: +x −x +y −y +z −z) and face coordinates in [−1, 1]² of direction d.

@@ -88,7 +88,8 @@ fn gather(x: vec3<f32>, view_dir: vec3<f32>, jitter: f32) -> vec3<f32> {
         if (tr <= 0.0) {
             continue;
         }
-        let emitted = vl.power * ml.power_scale * phase_hg(dot(vl.direction, toward), scene.g);
+        let power = reweighted_power(vl, scene.density_scale, ml.built_density);
+        let emitted = power * ml.power_scale * phase_hg(dot(vl.direction, toward), scene.g);
         s += emitted * vsl_geometry(d, ml.vsl_radius) * tr * phase_hg(dot(toward, -view_dir), scene.g);
     }
     return s;

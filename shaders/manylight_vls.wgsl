@@ -24,6 +24,25 @@ fn uniform_direction(u1: f32, u2: f32) -> vec3<f32> {
     return vec3<f32>(r * cos(phi), r * sin(phi), z);
 }
 
+// Optical depth per unit density scale along origin + t·dir for t in [t0, t1] (midpoint rule
+// at the shadow step), for re-weighting under density-scale edits.
+fn unit_optical_depth(origin: vec3<f32>, dir: vec3<f32>, t0: f32, t1: f32) -> f32 {
+    let step = scene.step * 2.0;
+    let full = u32(max(0.0, floor((t1 - t0) / step)));
+    var tau = 0.0;
+    for (var k = 0u; k < full; k++) {
+        tau += classify(sample_volume(box_relative(origin + dir * (t0 + (f32(k) + 0.5) * step)))).a;
+    }
+    tau *= step;
+    // The last partial step.
+    let covered = f32(full) * step;
+    let rest = t1 - t0 - covered;
+    if (rest > 0.0) {
+        tau += classify(sample_volume(box_relative(origin + dir * (t0 + covered + 0.5 * rest)))).a * rest;
+    }
+    return tau;
+}
+
 fn luminance(c: vec3<f32>) -> f32 {
     return dot(c, vec3<f32>(0.2126, 0.7152, 0.0722));
 }
@@ -86,6 +105,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
     }
     var weight = power;
+    var tau = 0.0;
     let start = max(weight.x, max(weight.y, weight.z));
     var alive = start > 0.0;
     for (var k = 0u; k < ml.max_bounces; k++) {
@@ -101,7 +121,8 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             } else {
                 let p = origin + dir * event.x;
                 weight *= medium_at(p).rgb;
-                vl = VirtualLight(p, 0.0, weight, 0.0, dir, 0.0);
+                tau += unit_optical_depth(origin, dir, max(hit.x, 0.0), event.x);
+                vl = VirtualLight(p, tau, weight, f32(k + 1u), dir, 0.0);
                 // Roulette on the throughput relative to the emitted power.
                 let survive = min(1.0, max(weight.x, max(weight.y, weight.z)) / start);
                 if (rng_next(&rng) >= survive) {

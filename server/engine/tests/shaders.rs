@@ -130,6 +130,6 @@ fn rust_and_wgsl_layouts_agree() {
         &gather,
         "VirtualLight",
         size_of::<VirtualLight>(),
-        fields!(VirtualLight: position, pad0, power, pad1, direction, pad2),
+        fields!(VirtualLight: position, tau, power, vertices, direction, pad0),
     );
 }

@@ -31,11 +31,13 @@ pub struct ManylightParams {
 #[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
 pub struct VirtualLight {
     pub position: [f32; 3],
-    pub pad0: f32,
+    /// Optical depth of its path from the light, per unit density scale.
+    pub tau: f32,
     pub power: [f32; 3],
-    pub pad1: f32,
+    /// Scattering events on its path, this one included.
+    pub vertices: f32,
     pub direction: [f32; 3],
-    pub pad2: f32,
+    pub pad0: f32,
 }
 
 /// Matches `GatherChunk` in manylight_gather.wgsl: the virtual lights one gather dispatch

@@ -84,6 +84,9 @@ pub struct Manylight {
     /// Virtual lights held, and light paths traced to produce them.
     count: u32,
     paths_traced: u64,
+    /// Density scale and phase asymmetry the lights and maps were built with.
+    built_density: f32,
+    built_g: f32,
     bind_group: wgpu::BindGroup,
     /// The virtual lights and shadow maps no longer match the scene.
     stale: bool,
@@ -171,6 +174,8 @@ impl Manylight {
             scratch,
             count: 0,
             paths_traced: 0,
+            built_density: scene.params.density_scale,
+            built_g: scene.params.g,
             bind_group,
             stale: true,
             preview_pending: false,
@@ -224,7 +229,7 @@ impl Manylight {
             mode: self.config.mode as u32,
             seed: scene.seed,
             vsl_radius: self.config.vsl_radius,
-            built_density: scene.params.density_scale,
+            built_density: self.built_density,
             power_scale,
             pad0: 0.0,
         };
@@ -244,6 +249,8 @@ impl Manylight {
     pub fn rebuild(&mut self, engine: &Engine, scene: &Scene) -> Result<BuildTimes, EngineError> {
         // The passes read the scene uniforms of the next iteration.
         self.base.encode_uniforms(engine, scene)?;
+        self.built_density = scene.params.density_scale;
+        self.built_g = scene.params.g;
         let started = Instant::now();
         let capacity = self.config.vls as usize;
         let mut lights: Vec<VirtualLight> = Vec::with_capacity(capacity);
@@ -462,6 +469,9 @@ impl Technique for Manylight {
                 );
             }
             // New lights, medium or phase function: new light paths and shadow maps.
+            // A new density scale re-weights the lights and rescales their maps exactly
+            // (T^(s/s_built), the paper's §5); exposure is display only. A new g needs new paths.
+            Change::Params if scene.params.g == self.built_g => {}
             Change::Tf { .. } | Change::Lights | Change::Params => {
                 self.preview_pending = self.count > 0;
                 self.stale = true;
