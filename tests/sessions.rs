@@ -334,6 +334,18 @@ async fn the_global_gpu_memory_budget_refuses_what_does_not_fit() {
         }
         other => panic!("expected gpu_memory, got {other:?}"),
     }
+    // A technique whose own buffers do not fit (manylight's shadow maps) is refused after it
+    // is built, by its actual size.
+    let mut shadowed = Client::connect(&server.ws_url()).await.unwrap();
+    let mut hello_manylight = hello(64, "shadowed");
+    hello_manylight["technique"] = "manylight".into();
+    match shadowed.hello_with(hello_manylight).await.unwrap() {
+        ServerMessage::Error { code, message } => {
+            assert_eq!(code, ErrorCode::GpuMemory);
+            assert!(message.contains("budget"), "{message}");
+        }
+        other => panic!("expected gpu_memory, got {other:?}"),
+    }
     // Growing the viewport past the budget is refused too, and the session goes on.
     small
         .send_json(json!({"type": "viewport", "width": 600, "height": 600}))

@@ -140,6 +140,12 @@ struct Session {
 }
 
 impl Session {
+    /// GPU bytes of this session's buffers (at least the per-pixel estimate).
+    fn bytes(&self) -> u64 {
+        let estimate = session_bytes(self.scene.viewport.width, self.scene.viewport.height);
+        self.renderer.stats().memory_bytes.max(estimate)
+    }
+
     fn wants_gpu(&self) -> bool {
         self.dirty && !self.failed && self.viewers.load(Ordering::Relaxed) > 0
     }
@@ -193,11 +199,7 @@ impl RenderThread {
 
     /// GPU bytes in use: every session's buffers plus each live volume once.
     fn memory_in_use(&self) -> u64 {
-        let sessions: u64 = self
-            .sessions
-            .values()
-            .map(|s| session_bytes(s.scene.viewport.width, s.scene.viewport.height))
-            .sum();
+        let sessions: u64 = self.sessions.values().map(Session::bytes).sum();
         let volumes: u64 = self
             .volumes
             .values()
@@ -217,9 +219,7 @@ impl RenderThread {
     ) -> Result<(), EngineError> {
         let freed = replacing
             .and_then(|id| self.sessions.get(&id))
-            .map_or(0, |s| {
-                session_bytes(s.scene.viewport.width, s.scene.viewport.height)
-            });
+            .map_or(0, Session::bytes);
         let upload = volume
             .filter(|v| {
                 self.volumes
@@ -228,6 +228,28 @@ impl RenderThread {
             })
             .map_or(0, |v| GpuVolume::bytes_needed(&self.engine.gpu, v.dims));
         let needed = session_bytes(scene.viewport.width, scene.viewport.height) + upload;
+        let in_use = self.memory_in_use() - freed;
+        if in_use + needed > self.memory_budget {
+            return Err(EngineError::MemoryBudget {
+                needed,
+                in_use,
+                budget: self.memory_budget,
+            });
+        }
+        Ok(())
+    }
+
+    /// After creating a renderer: its actual buffers (techniques beyond the per-pixel estimate,
+    /// e.g. photon maps or shadow maps) must fit too.
+    fn check_actual(
+        &self,
+        replacing: Option<SessionId>,
+        renderer: &Renderer,
+    ) -> Result<(), EngineError> {
+        let freed = replacing
+            .and_then(|id| self.sessions.get(&id))
+            .map_or(0, Session::bytes);
+        let needed = renderer.stats().memory_bytes;
         let in_use = self.memory_in_use() - freed;
         if in_use + needed > self.memory_budget {
             return Err(EngineError::MemoryBudget {
@@ -320,7 +342,8 @@ impl RenderThread {
                     .and_then(|()| self.gpu_volume(&volume))
                     .and_then(|gpu_volume| {
                         self.engine.create_renderer(&technique, gpu_volume, &scene)
-                    });
+                    })
+                    .and_then(|renderer| self.check_actual(None, &renderer).map(|()| renderer));
                 match result {
                     Ok(renderer) => {
                         self.sessions.insert(
@@ -399,8 +422,9 @@ impl RenderThread {
                         Some(volume) => self.gpu_volume(&volume),
                         None => Ok(current),
                     });
-                let result =
-                    gpu_volume.and_then(|v| self.engine.create_renderer(&technique, v, &scene));
+                let result = gpu_volume
+                    .and_then(|v| self.engine.create_renderer(&technique, v, &scene))
+                    .and_then(|renderer| self.check_actual(Some(id), &renderer).map(|()| renderer));
                 match (result, self.sessions.get_mut(&id)) {
                     (Ok(renderer), Some(session)) => {
                         session.renderer = renderer;
