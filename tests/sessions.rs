@@ -431,3 +431,32 @@ async fn loadgen_measures_latency_and_frame_rates() {
     refusing.stop().await.unwrap();
     server.stop().await.unwrap();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn technique_details_reach_stats_and_frames() {
+    let server = TestServer::start(None).await.unwrap();
+    let mut client = Client::connect(&server.ws_url()).await.unwrap();
+    let mut hello = hello(32, "Ada");
+    hello["technique"] = "manylight".into();
+    client.hello_with(hello).await.unwrap();
+    client
+        .send_json(json!({"type": "quality", "iterations": 2}))
+        .await
+        .unwrap();
+    let frame = client.frame_where(|f| f.meta.converged).await.unwrap();
+    assert_eq!(frame.meta.technique, "manylight");
+    let lights = frame.meta.details.virtual_lights.unwrap_or(0);
+    assert!(lights > 0, "{:?}", frame.meta.details);
+    assert!(frame.meta.details.shadow_map_bytes.unwrap_or(0) > 0);
+    // Stats always follow the converged frame.
+    let stats = client
+        .text_where(|m| matches!(m, ServerMessage::Stats(s) if s.converged))
+        .await
+        .unwrap();
+    let ServerMessage::Stats(stats) = stats else {
+        unreachable!()
+    };
+    assert_eq!(stats.details.virtual_lights, Some(lights));
+    client.close().await;
+    server.stop().await.unwrap();
+}

@@ -395,6 +395,35 @@ pub struct Stats {
     /// Frames this viewer skipped because a newer one was ready before it could take it.
     #[serde(default)]
     pub frames_skipped: u64,
+    /// What the technique reports beyond progress (absent fields do not apply to it).
+    #[serde(default)]
+    pub details: TechniqueDetails,
+}
+
+/// Technique-specific figures, in `stats` and frame metadata. Every field is optional.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct TechniqueDetails {
+    /// `photon`: photon paths traced since the session started (retraced ones included).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub photons_traced: Option<u64>,
+    /// `photon`: photon paths in the current map.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub photons_in_map: Option<u64>,
+    /// `photon`: share of the map's paths the last TF edit retraced, in percent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub photons_retraced_pct: Option<f32>,
+    /// `photon`: share of the view-ray segments the last TF edit gathered again, in percent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub segments_recomputed_pct: Option<f32>,
+    /// `manylight`: virtual lights in use.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub virtual_lights: Option<u32>,
+    /// `manylight`: bytes of their adaptive volumetric shadow maps.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shadow_map_bytes: Option<u64>,
+    /// `manylight`: milliseconds the last tracing of the lights and map build took.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub build_ms: Option<f32>,
 }
 
 /// Image encodings of frames.
@@ -429,6 +458,9 @@ pub struct FrameMeta {
     pub scene_version: u64,
     pub render_ms: f32,
     pub encode_ms: f32,
+    /// Technique-specific figures (as in `stats`).
+    #[serde(default)]
+    pub details: TechniqueDetails,
 }
 
 /// A scene file for `voxlight render` (DESIGN.md "Fixed names"): the protocol's field names.
@@ -566,6 +598,10 @@ mod tests {
             scene_version: 1,
             render_ms: 1.0,
             encode_ms: 2.0,
+            details: TechniqueDetails {
+                virtual_lights: Some(3),
+                ..TechniqueDetails::default()
+            },
         };
         let bytes = join_frame(&meta, b"image");
         let (back, image) = split_frame(&bytes).unwrap();

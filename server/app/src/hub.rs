@@ -14,7 +14,7 @@ use tokio::sync::{broadcast, watch};
 use voxlight_engine::Scene;
 use voxlight_protocol::{
     ErrorCode, FrameFormat, FrameMeta, MAX_NAME_CHARS, MAX_VIEWERS_PER_SESSION, ServerMessage,
-    SessionState, Stats, ViewerInfo, join_frame,
+    SessionState, Stats, TechniqueDetails, ViewerInfo, join_frame,
 };
 
 use crate::metrics::Metrics;
@@ -344,6 +344,16 @@ fn encode_frame(
 ) -> Result<EncodedFrame, crate::encode::EncodeError> {
     let started = Instant::now();
     let frame = &rendered.frame;
+    let technique = &rendered.stats;
+    let details = TechniqueDetails {
+        photons_traced: (technique.photons_traced > 0).then_some(technique.photons_traced),
+        photons_in_map: (technique.photons_in_map > 0).then_some(technique.photons_in_map),
+        photons_retraced_pct: technique.photons_retraced_pct,
+        segments_recomputed_pct: technique.segments_recomputed_pct,
+        virtual_lights: technique.virtual_lights,
+        shadow_map_bytes: technique.shadow_map_bytes,
+        build_ms: technique.build_ms,
+    };
     let (image, format, quality) = match encoding {
         Encoding::Png => (
             crate::encode::png(&frame.rgba, frame.width, frame.height)?,
@@ -370,6 +380,7 @@ fn encode_frame(
         scene_version: rendered.scene_version,
         render_ms: rendered.render_ms,
         encode_ms: started.elapsed().as_secs_f32() * 1000.0,
+        details: details.clone(),
     };
     let stats = Stats {
         technique: rendered.technique.to_owned(),
@@ -378,6 +389,7 @@ fn encode_frame(
         converged: frame.converged,
         gpu_ms: rendered.gpu_ms,
         memory_bytes: rendered.stats.memory_bytes,
+        details,
         ..Stats::default()
     };
     Ok(EncodedFrame {

@@ -32,6 +32,11 @@ pub struct TechniqueStats {
     pub photons_retraced_pct: Option<f32>,
     /// `photon`: share of the view-ray segments the last TF edit gathered again.
     pub segments_recomputed_pct: Option<f32>,
+    /// `manylight`: virtual lights held, their shadow maps' bytes, and how long the last
+    /// tracing + map build took.
+    pub virtual_lights: Option<u32>,
+    pub shadow_map_bytes: Option<u64>,
+    pub build_ms: Option<f32>,
 }
 
 pub trait Technique: Send {

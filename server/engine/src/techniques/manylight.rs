@@ -539,7 +539,11 @@ impl Technique for Manylight {
                 + self.vls.size()
                 + self.avsm.size()
                 + self.params.size()
-                + self.chunks.size(),
+                + self.chunks.size()
+                + self.scratch.size(),
+            virtual_lights: Some(self.count),
+            shadow_map_bytes: Some(self.avsm.size()),
+            build_ms: Some((self.last_build.vls + self.last_build.avsm).as_secs_f32() * 1000.0),
             ..base
         }
     }

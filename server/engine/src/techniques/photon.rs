@@ -862,6 +862,7 @@ impl Technique for Photon {
             segments_recomputed_pct: self
                 .last_update
                 .map(|_| update.segments_recomputed_pct() as f32),
+            ..TechniqueStats::default()
         }
     }
 }
