@@ -303,3 +303,73 @@ fn a_density_scale_edit_reweights_without_tracing_again() {
         );
     }
 }
+
+#[test]
+fn a_phase_function_edit_reweights_without_tracing_again() {
+    let (_, volume) = sphere(32);
+    let engine = engine();
+    let mut s = scene(
+        ramp_tf(0.9),
+        vec![Light::Directional {
+            direction: [0.3, 0.8, -0.5],
+            irradiance: [3.0; 3],
+        }],
+        12.0,
+        24,
+        8,
+    );
+    let config = ManylightConfig {
+        vls: 2048,
+        max_bounces: 16,
+        face_res: 1,
+        nodes: 2,
+        mode: TransmittanceMode::RayMarched,
+        vsl_radius: 0.01,
+    };
+    let mut technique = Manylight::new(engine, volume.clone(), &s, config).expect("manylight");
+    while technique.iteration() < s.target_iterations {
+        technique
+            .step(engine, &s, Duration::from_secs(10))
+            .expect("step");
+    }
+    let built = technique.last_build;
+    s.params.g = 0.3;
+    technique
+        .apply(engine, &s, &voxlight_engine::Change::Params)
+        .expect("apply");
+    while technique.iteration() < s.target_iterations {
+        technique
+            .step(engine, &s, Duration::from_secs(10))
+            .expect("step");
+    }
+    assert_eq!(technique.last_build, built, "no new paths");
+    let accum = engine.gpu.read_buffer(technique.output()).expect("read");
+    let reweighted: Vec<[f32; 3]> = bytemuck::cast_slice::<u8, [f32; 4]>(&accum)
+        .iter()
+        .map(|p| [p[0] / p[3], p[1] / p[3], p[2] / p[3]])
+        .collect();
+    let fresh = render_manylight(volume.clone(), &s, config);
+    let (_, reference) = render_with("pathtrace", volume.clone(), &{
+        let mut long = s.clone();
+        long.target_iterations = 256;
+        long
+    });
+    let (_, single) = render_with("raymarch", volume, &s);
+    let (a, b, r, one) = (
+        mean(&reweighted),
+        mean(&fresh),
+        mean(&reference),
+        mean(&single),
+    );
+    eprintln!(
+        "g 0 → 0.3: re-weighted {a:.5}, traced again {b:.5}, pathtrace {r:.5}, single {one:.5}"
+    );
+    for (name, m) in [("re-weighted", a), ("traced again", b)] {
+        let recovered = (m - one) / (r - one);
+        assert!(
+            (0.85..1.15).contains(&recovered),
+            "{name}: {:.1}% of the multiple scattering",
+            100.0 * recovered
+        );
+    }
+}

@@ -61,6 +61,10 @@ impl ManylightConfig {
 /// nearly empty medium).
 const MAX_PATHS_PER_VL: u32 = 256;
 
+/// Largest change of g handled by re-weighting the lights (the second moment of the
+/// per-vertex weight f_new/f_old grows fast with it: 1.3 at 0 → 0.3, 3.3 at 0 → 0.6).
+const MAX_REWEIGHTED_G_CHANGE: f32 = 0.3;
+
 /// Light paths per tracing batch (the scratch buffer holds `max_bounces` lights for each).
 const BATCH_PATHS: u32 = 4096;
 
@@ -87,6 +91,10 @@ pub struct Manylight {
     /// Density scale and phase asymmetry the lights and maps were built with.
     built_density: f32,
     built_g: f32,
+    /// The lights as traced (path by path, in order), for exact re-weighting on g edits.
+    built_lights: Vec<VirtualLight>,
+    /// The g the current powers on the GPU are weighted for.
+    weighted_g: f32,
     bind_group: wgpu::BindGroup,
     /// The virtual lights and shadow maps no longer match the scene.
     stale: bool,
@@ -176,6 +184,8 @@ impl Manylight {
             paths_traced: 0,
             built_density: scene.params.density_scale,
             built_g: scene.params.g,
+            built_lights: Vec::new(),
+            weighted_g: scene.params.g,
             bind_group,
             stale: true,
             preview_pending: false,
@@ -296,6 +306,8 @@ impl Manylight {
         }
         self.paths_traced = traced;
         self.count = lights.len() as u32;
+        self.built_lights = lights;
+        self.weighted_g = scene.params.g;
         self.write_params(engine, scene);
         let vls = started.elapsed();
         let started = Instant::now();
@@ -335,6 +347,35 @@ impl Manylight {
         engine.gpu.queue.submit([encoder.finish()]);
         self.base.advance();
         Ok(())
+    }
+
+    /// Re-weights every light for a new Henyey-Greenstein g without new paths: the directions
+    /// leaving each earlier vertex of its path were sampled with the built g, so its power
+    /// gains Π f_g(cos) / f_built(cos) over those vertices (exact; the paper's §5.2 keeps the
+    /// lights unweighted).
+    fn reweight_phase(&mut self, engine: &Engine, g: f32) {
+        let mut lights = self.built_lights.clone();
+        let mut factor = 1.0f64;
+        for k in 0..lights.len() {
+            if lights[k].vertices <= 1.0 {
+                factor = 1.0; // a new path
+            } else {
+                let previous = self.built_lights[k - 1].direction;
+                let here = self.built_lights[k].direction;
+                let cos = (0..3).map(|i| previous[i] * here[i]).sum::<f32>();
+                factor *= phase_hg(cos, g) / phase_hg(cos, self.built_g).max(1e-30);
+            }
+            for c in &mut lights[k].power {
+                *c = (*c as f64 * factor) as f32;
+            }
+        }
+        if !lights.is_empty() {
+            engine
+                .gpu
+                .queue
+                .write_buffer(&self.vls, 0, bytemuck::cast_slice(&lights));
+        }
+        self.weighted_g = g;
     }
 
     /// Runs `iterations` gather passes alone (no single scattering) and waits: the cost of
@@ -468,10 +509,16 @@ impl Technique for Manylight {
                     &self.scratch,
                 );
             }
-            // New lights, medium or phase function: new light paths and shadow maps.
             // A new density scale re-weights the lights and rescales their maps exactly
-            // (T^(s/s_built), the paper's §5); exposure is display only. A new g needs new paths.
-            Change::Params if scene.params.g == self.built_g => {}
+            // (T^(s/s_built), the paper's §5); exposure is display only; a new g re-weights
+            // their powers exactly, unless it moved so far from the traced one that the
+            // weights' variance would swamp the picture: then new paths.
+            Change::Params if (scene.params.g - self.built_g).abs() <= MAX_REWEIGHTED_G_CHANGE => {
+                if scene.params.g != self.weighted_g {
+                    self.reweight_phase(engine, scene.params.g);
+                }
+            }
+            // A new medium or new lights: new light paths and shadow maps.
             Change::Tf { .. } | Change::Lights | Change::Params => {
                 self.preview_pending = self.count > 0;
                 self.stale = true;
@@ -547,4 +594,11 @@ impl Technique for Manylight {
             ..base
         }
     }
+}
+
+/// Henyey-Greenstein phase function (common.wgsl's phase_hg).
+fn phase_hg(cos_theta: f32, g: f32) -> f64 {
+    let (cos_theta, g) = (cos_theta as f64, g as f64);
+    let denom = 1.0 + g * g - 2.0 * g * cos_theta;
+    (1.0 - g * g) / (4.0 * std::f64::consts::PI * denom * denom.sqrt())
 }
