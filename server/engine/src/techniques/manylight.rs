@@ -356,16 +356,17 @@ impl Manylight {
     fn reweight_phase(&mut self, engine: &Engine, g: f32) {
         let mut lights = self.built_lights.clone();
         let mut factor = 1.0f64;
-        for k in 0..lights.len() {
-            if lights[k].vertices <= 1.0 {
+        for (k, light) in lights.iter_mut().enumerate() {
+            if light.vertices <= 1.0 {
                 factor = 1.0; // a new path
             } else {
                 let previous = self.built_lights[k - 1].direction;
-                let here = self.built_lights[k].direction;
-                let cos = (0..3).map(|i| previous[i] * here[i]).sum::<f32>();
+                let cos = (0..3)
+                    .map(|i| previous[i] * light.direction[i])
+                    .sum::<f32>();
                 factor *= phase_hg(cos, g) / phase_hg(cos, self.built_g).max(1e-30);
             }
-            for c in &mut lights[k].power {
+            for c in &mut light.power {
                 *c = (*c as f64 * factor) as f32;
             }
         }
