@@ -25,7 +25,6 @@ struct GatherChunk {
     pad1: u32,
 }
 
-const VIEW_T_CUTOFF: f32 = 1e-4;
 
 // Transmittance at `depth` along the piecewise-linear curve of one texel.
 fn texel_transmittance(base: u32, depth: f32) -> f32 {
@@ -110,38 +109,9 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (hit.x >= hit.y) {
         return;
     }
-    var transmit = 1.0;
-    var weight_sum = 0.0;
-    var chosen_pos = vec3<f32>(0.0);
-    var chosen_albedo = vec3<f32>(0.0);
-    let jitter = rng_next(&rng);
-    var k = 0.0;
-    loop {
-        let t = hit.x + (k + jitter) * scene.step;
-        if (t >= hit.y || transmit < VIEW_T_CUTOFF) {
-            break;
-        }
-        let p = scene.eye + dir * t;
-        let cell = cell_of(box_relative(p));
-        if (cell_is_empty(cell)) {
-            k = skip_empty_cell(scene.eye, dir, cell, hit.x, scene.step, jitter, k);
-            continue;
-        }
-        let m = medium_at(p);
-        if (m.a > 0.0) {
-            let alpha = 1.0 - exp(-m.a * scene.step);
-            let w = transmit * alpha;
-            weight_sum += w;
-            if (rng_next(&rng) * weight_sum < w) {
-                chosen_pos = p;
-                chosen_albedo = m.rgb;
-            }
-            transmit *= 1.0 - alpha;
-        }
-        k += 1.0;
-    }
-    if (weight_sum > 0.0 && any(chosen_albedo > vec3<f32>(0.0))) {
-        let radiance = weight_sum * chosen_albedo * gather(chosen_pos, dir, rng_next(&rng));
+    let s = pick_scattering(scene.eye, dir, hit.x, hit.y, &rng);
+    if (s.weight_sum > 0.0 && any(s.albedo > vec3<f32>(0.0))) {
+        let radiance = s.weight_sum * s.albedo * gather(s.position, dir, rng_next(&rng));
         accum[pixel] += vec4<f32>(radiance, 0.0);
     }
 }

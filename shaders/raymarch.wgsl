@@ -13,8 +13,6 @@
 @group(0) @binding(4) var<storage, read_write> accum: array<vec4<f32>>;
 @group(0) @binding(5) var<storage, read> cell_max_opacity: array<f32>;
 
-// Below this view transmittance the march stops (relative bias at most 1e-4).
-const VIEW_T_CUTOFF: f32 = 1e-4;
 // Shadow rays of lights.wgsl: the jittered march with a fresh jitter.
 fn shadow_transmittance(p: vec3<f32>, dir: vec3<f32>, t_max: f32, rng: ptr<function, Rng>) -> f32 {
     return transmittance(p, dir, t_max, rng_next(rng));
@@ -46,40 +44,10 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     var radiance = scene.env_radiance;
     let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
     if (hit.x < hit.y) {
-        var transmit = 1.0;
-        var weight_sum = 0.0;
-        var chosen_pos = vec3<f32>(0.0);
-        var chosen_albedo = vec3<f32>(0.0);
-        let jitter = rng_next(&rng);
-        var k = 0.0;
-        loop {
-            let t = hit.x + (k + jitter) * scene.step;
-            if (t >= hit.y || transmit < VIEW_T_CUTOFF) {
-                break;
-            }
-            let p = scene.eye + dir * t;
-            let cell = cell_of(box_relative(p));
-            if (cell_is_empty(cell)) {
-                k = skip_empty_cell(scene.eye, dir, cell, hit.x, scene.step, jitter, k);
-                continue;
-            }
-            let m = medium_at(p);
-            if (m.a > 0.0) {
-                let alpha = 1.0 - exp(-m.a * scene.step);
-                let w = transmit * alpha;
-                weight_sum += w;
-                // Weighted reservoir: keep this location with probability w / weight_sum.
-                if (rng_next(&rng) * weight_sum < w) {
-                    chosen_pos = p;
-                    chosen_albedo = m.rgb;
-                }
-                transmit *= 1.0 - alpha;
-            }
-            k += 1.0;
-        }
-        radiance = scene.env_radiance * transmit;
-        if (weight_sum > 0.0 && any(chosen_albedo > vec3<f32>(0.0))) {
-            radiance += weight_sum * chosen_albedo * in_scattered(chosen_pos, dir, &rng);
+        let s = pick_scattering(scene.eye, dir, hit.x, hit.y, &rng);
+        radiance = scene.env_radiance * s.transmit;
+        if (s.weight_sum > 0.0 && any(s.albedo > vec3<f32>(0.0))) {
+            radiance += s.weight_sum * s.albedo * in_scattered(s.position, dir, &rng);
         }
     }
 

@@ -217,9 +217,6 @@ impl RenderThread {
         scene: &Scene,
         volume: Option<&Volume>,
     ) -> Result<(), EngineError> {
-        let freed = replacing
-            .and_then(|id| self.sessions.get(&id))
-            .map_or(0, Session::bytes);
         let upload = volume
             .filter(|v| {
                 self.volumes
@@ -228,15 +225,7 @@ impl RenderThread {
             })
             .map_or(0, |v| GpuVolume::bytes_needed(&self.engine.gpu, v.dims));
         let needed = session_bytes(scene.viewport.width, scene.viewport.height) + upload;
-        let in_use = self.memory_in_use() - freed;
-        if in_use + needed > self.memory_budget {
-            return Err(EngineError::MemoryBudget {
-                needed,
-                in_use,
-                budget: self.memory_budget,
-            });
-        }
-        Ok(())
+        self.check_fits(replacing, needed)
     }
 
     /// After creating a renderer: its actual buffers (techniques beyond the per-pixel estimate,
@@ -246,10 +235,13 @@ impl RenderThread {
         replacing: Option<SessionId>,
         renderer: &Renderer,
     ) -> Result<(), EngineError> {
+        self.check_fits(replacing, renderer.stats().memory_bytes)
+    }
+
+    fn check_fits(&self, replacing: Option<SessionId>, needed: u64) -> Result<(), EngineError> {
         let freed = replacing
             .and_then(|id| self.sessions.get(&id))
             .map_or(0, Session::bytes);
-        let needed = renderer.stats().memory_bytes;
         let in_use = self.memory_in_use() - freed;
         if in_use + needed > self.memory_budget {
             return Err(EngineError::MemoryBudget {

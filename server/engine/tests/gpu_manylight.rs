@@ -197,11 +197,7 @@ fn a_tf_edit_answers_at_once_then_rebuilds_to_the_fresh_result() {
         ..ManylightConfig::default()
     };
     let mut technique = Manylight::new(engine, volume.clone(), &s, config).expect("manylight");
-    while technique.iteration() < s.target_iterations {
-        technique
-            .step(engine, &s, Duration::from_secs(10))
-            .expect("step");
-    }
+    converge(&mut technique, &s);
     let paths_before = technique.virtual_light_count().1;
     let mut edited = s.clone();
     edited.tf = ramp_tf(0.5);
@@ -255,28 +251,16 @@ fn a_density_scale_edit_reweights_without_tracing_again() {
         vsl_radius: 0.01,
     };
     let mut technique = Manylight::new(engine, volume.clone(), &s, config).expect("manylight");
-    while technique.iteration() < s.target_iterations {
-        technique
-            .step(engine, &s, Duration::from_secs(10))
-            .expect("step");
-    }
+    converge(&mut technique, &s);
     let built = technique.last_build;
     s.params.density_scale = 20.0;
     technique
         .apply(engine, &s, &voxlight_engine::Change::Params)
         .expect("apply");
-    while technique.iteration() < s.target_iterations {
-        technique
-            .step(engine, &s, Duration::from_secs(10))
-            .expect("step");
-    }
+    converge(&mut technique, &s);
     // No new light paths or maps were made.
     assert_eq!(technique.last_build, built);
-    let accum = engine.gpu.read_buffer(technique.output()).expect("read");
-    let reweighted: Vec<[f32; 3]> = bytemuck::cast_slice::<u8, [f32; 4]>(&accum)
-        .iter()
-        .map(|p| [p[0] / p[3], p[1] / p[3], p[2] / p[3]])
-        .collect();
+    let reweighted = technique_hdr(&technique);
     let fresh = render_manylight(volume.clone(), &s, config);
     let (_, reference) = render_with("pathtrace", volume.clone(), &{
         let mut long = s.clone();
@@ -294,14 +278,7 @@ fn a_density_scale_edit_reweights_without_tracing_again() {
         "density 12 → 20: re-weighted {a:.5}, traced again {b:.5}, pathtrace {r:.5}, single {one:.5}"
     );
     // Both estimate the same multiple scattering (the re-weighted lights with more variance).
-    for (name, m) in [("re-weighted", a), ("traced again", b)] {
-        let recovered = (m - one) / (r - one);
-        assert!(
-            (0.85..1.15).contains(&recovered),
-            "{name}: {:.1}% of the multiple scattering",
-            100.0 * recovered
-        );
-    }
+    assert_recovers_multiple_scattering(&[("re-weighted", a), ("traced again", b)], r, one);
 }
 
 #[test]
@@ -327,27 +304,15 @@ fn a_phase_function_edit_reweights_without_tracing_again() {
         vsl_radius: 0.01,
     };
     let mut technique = Manylight::new(engine, volume.clone(), &s, config).expect("manylight");
-    while technique.iteration() < s.target_iterations {
-        technique
-            .step(engine, &s, Duration::from_secs(10))
-            .expect("step");
-    }
+    converge(&mut technique, &s);
     let built = technique.last_build;
     s.params.g = 0.3;
     technique
         .apply(engine, &s, &voxlight_engine::Change::Params)
         .expect("apply");
-    while technique.iteration() < s.target_iterations {
-        technique
-            .step(engine, &s, Duration::from_secs(10))
-            .expect("step");
-    }
+    converge(&mut technique, &s);
     assert_eq!(technique.last_build, built, "no new paths");
-    let accum = engine.gpu.read_buffer(technique.output()).expect("read");
-    let reweighted: Vec<[f32; 3]> = bytemuck::cast_slice::<u8, [f32; 4]>(&accum)
-        .iter()
-        .map(|p| [p[0] / p[3], p[1] / p[3], p[2] / p[3]])
-        .collect();
+    let reweighted = technique_hdr(&technique);
     let fresh = render_manylight(volume.clone(), &s, config);
     let (_, reference) = render_with("pathtrace", volume.clone(), &{
         let mut long = s.clone();
@@ -364,8 +329,30 @@ fn a_phase_function_edit_reweights_without_tracing_again() {
     eprintln!(
         "g 0 → 0.3: re-weighted {a:.5}, traced again {b:.5}, pathtrace {r:.5}, single {one:.5}"
     );
-    for (name, m) in [("re-weighted", a), ("traced again", b)] {
-        let recovered = (m - one) / (r - one);
+    assert_recovers_multiple_scattering(&[("re-weighted", a), ("traced again", b)], r, one);
+}
+
+fn converge(technique: &mut Manylight, scene: &voxlight_engine::Scene) {
+    while technique.iteration() < scene.target_iterations {
+        technique
+            .step(engine(), scene, Duration::from_secs(10))
+            .expect("step");
+    }
+}
+
+/// The technique's HDR estimate, read straight from its accumulation buffer.
+fn technique_hdr(technique: &Manylight) -> Vec<[f32; 3]> {
+    let accum = engine().gpu.read_buffer(technique.output()).expect("read");
+    bytemuck::cast_slice::<u8, [f32; 4]>(&accum)
+        .iter()
+        .map(|p| [p[0] / p[3], p[1] / p[3], p[2] / p[3]])
+        .collect()
+}
+
+/// Each estimate's multiple scattering (mean − single) is within 15% of the path tracer's.
+fn assert_recovers_multiple_scattering(estimates: &[(&str, f64)], reference: f64, single: f64) {
+    for (name, m) in estimates {
+        let recovered = (m - single) / (reference - single);
         assert!(
             (0.85..1.15).contains(&recovered),
             "{name}: {:.1}% of the multiple scattering",
