@@ -1,7 +1,8 @@
 //! The three passes of technique `manylight` (shaders/manylight_*.wgsl): virtual lights,
 //! their adaptive volumetric shadow maps, and gathering. All three bind the estimator's
 //! bindings 0–5 (crate::passes::estimator) plus the technique's parameters, virtual lights and
-//! shadow maps (6–8), through one bind group layout.
+//! shadow maps (6–8), the gather's chunk (9, dynamic offset) and the tracing batch's scratch
+//! lights (10), through one bind group layout.
 
 use bytemuck::{Pod, Zeroable};
 
