@@ -9,6 +9,23 @@ use serde_json::json;
 use voxlight_engine::{Engine, Scene};
 use voxlight_protocol::{Camera, TfPoint, TransferFunction, Viewport, default_lights};
 
+/// The 256³ CT the speed benchmarks use: the bonsai of ../shared/data when found, else a
+/// 256³ Cornell phantom. Returns its name and the volume.
+pub fn ct_256(data_dir: Option<&Path>) -> anyhow::Result<(String, voxlight_volumes::Volume)> {
+    let (dataset, mut volume) = match data_dir.map(|d| d.join("vti/bonsai.vti")) {
+        Some(path) if path.is_file() => (
+            "vti/bonsai.vti".to_owned(),
+            voxlight_volumes::load(&path).with_context(|| format!("loading {}", path.display()))?,
+        ),
+        _ => (
+            "phantom:cornell@256".to_owned(),
+            voxlight_volumes::phantom("cornell", 256)?,
+        ),
+    };
+    volume.name = dataset.clone();
+    Ok((dataset, volume))
+}
+
 /// Options of `bench raymarch`.
 pub struct RaymarchBench<'a> {
     pub data_dir: Option<&'a Path>,
@@ -20,17 +37,7 @@ pub struct RaymarchBench<'a> {
 /// ../shared/data when found, else a 256³ Cornell phantom). Returns the JSON result.
 pub fn raymarch(options: &RaymarchBench) -> anyhow::Result<serde_json::Value> {
     let engine = Engine::new()?;
-    let (dataset, mut volume) = match options.data_dir.map(|d| d.join("vti/bonsai.vti")) {
-        Some(path) if path.is_file() => (
-            "vti/bonsai.vti".to_owned(),
-            voxlight_volumes::load(&path).with_context(|| format!("loading {}", path.display()))?,
-        ),
-        _ => (
-            "phantom:cornell@256".to_owned(),
-            voxlight_volumes::phantom("cornell", 256)?,
-        ),
-    };
-    volume.name = dataset.clone();
+    let (dataset, volume) = ct_256(options.data_dir)?;
     let gpu_volume = engine.upload_volume(&volume)?;
     let mut results = Vec::new();
     for &size in options.sizes {

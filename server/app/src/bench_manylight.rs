@@ -8,7 +8,6 @@ use std::path::Path;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use anyhow::Context;
 use serde_json::json;
 use voxlight_engine::passes::manylight::TransmittanceMode;
 use voxlight_engine::techniques::manylight::{Manylight, ManylightConfig};
@@ -76,17 +75,7 @@ fn manylight_renderer(
 
 pub fn manylight(options: &ManylightBench) -> anyhow::Result<serde_json::Value> {
     let engine = Engine::new()?;
-    let (dataset, mut volume) = match options.data_dir.map(|d| d.join("vti/bonsai.vti")) {
-        Some(path) if path.is_file() => (
-            "vti/bonsai.vti".to_owned(),
-            voxlight_volumes::load(&path).with_context(|| format!("loading {}", path.display()))?,
-        ),
-        _ => (
-            "phantom:cornell@256".to_owned(),
-            voxlight_volumes::phantom("cornell", 256)?,
-        ),
-    };
-    volume.name = dataset.clone();
+    let (dataset, volume) = crate::bench::ct_256(options.data_dir)?;
     let gpu_volume = engine.upload_volume(&volume)?;
     let scene = Scene {
         camera: Camera::default(),

@@ -151,6 +151,16 @@ impl Gpu {
     }
 
     /// Reads a whole buffer back (it must have `COPY_SRC` usage). Blocks.
+    /// A per-session buffer the queue can write (COPY_DST added), at least 16 bytes.
+    pub fn buffer(&self, label: &str, size: u64, usage: wgpu::BufferUsages) -> wgpu::Buffer {
+        self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: size.max(16),
+            usage: usage | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        })
+    }
+
     pub fn read_buffer(&self, buffer: &wgpu::Buffer) -> Result<Vec<u8>, EngineError> {
         let size = buffer.size();
         let staging = self.device.create_buffer(&wgpu::BufferDescriptor {

@@ -138,14 +138,8 @@ impl Manylight {
             )));
         }
         let base = Progressive::new(engine, Estimator::Raymarch, volume, scene)?;
-        let device = &engine.gpu.device;
         let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
-            device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size: size.max(16),
-                usage: usage | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            })
+            engine.gpu.buffer(label, size, usage)
         };
         let params = buffer(
             "manylight params",

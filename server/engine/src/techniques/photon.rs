@@ -303,14 +303,8 @@ impl Photon {
         let capacity = params.max_passes.max(1).min(scene.target_iterations.max(1));
         let budget = PhotonBudget::new(&params, &volume, width, height, capacity)?;
         budget.check(engine)?;
-        let device = &engine.gpu.device;
         let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
-            device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size: size.max(16),
-                usage: usage | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            })
+            engine.gpu.buffer(label, size, usage)
         };
         use wgpu::BufferUsages as U;
         let scene_buf = buffer(

@@ -67,14 +67,8 @@ impl Progressive {
         volume: Arc<GpuVolume>,
         scene: &Scene,
     ) -> Result<Self, EngineError> {
-        let device = &engine.gpu.device;
         let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
-            device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size,
-                usage: usage | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            })
+            engine.gpu.buffer(label, size, usage)
         };
         let scene_buf = buffer(
             "estimator scene",
