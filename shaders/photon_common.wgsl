@@ -35,6 +35,14 @@ struct PhotonUniforms {
     // segment), SPATIAL_AXES (the 3×64-bit spatial historygram), SPATIAL_CELLS (a dirty bit per
     // hash-grid cell, dilated by one cell).
     spatial: u32,
+    // The gather visits, in each hash cell, the photons of rank [chunk_first, chunk_first +
+    // chunk_count) per dispatch (chunk_last = 1 on the last). Splitting keeps every
+    // invocation's loop iterations bounded: llvmpipe silently ends an invocation's loops after
+    // 65535 iterations in all.
+    chunk_first: u32,
+    chunk_count: u32,
+    chunk_last: u32,
+    pad0: u32,
 }
 
 // A stored photon interaction (a real collision): where, the direction it arrived from (travel
@@ -88,13 +96,14 @@ const CELL_NONE: u32 = 0xffffffffu;
 const HIST_BINS: u32 = 64u;
 
 // Counters written by the passes: retraced paths, changed photon records, recomputed segments,
-// then the spatial historygram (x lo/hi, y lo/hi, z lo/hi).
+// the spatial historygram (x lo/hi, y lo/hi, z lo/hi), the most photons in one hash cell.
 const COUNTER_RETRACED: u32 = 0u;
 const COUNTER_CHANGED: u32 = 1u;
 const COUNTER_SEGMENTS: u32 = 2u;
 const COUNTER_SPATIAL: u32 = 3u;
+const COUNTER_MAX_CELL: u32 = 9u;
 // Dirty-cell bits (SPATIAL_CELLS) follow the counters.
-const COUNTER_DIRTY: u32 = 9u;
+const COUNTER_DIRTY: u32 = 10u;
 const SPATIAL_NONE: u32 = 0u;
 const SPATIAL_AXES: u32 = 1u;
 const SPATIAL_CELLS: u32 = 2u;

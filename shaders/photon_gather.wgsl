@@ -4,15 +4,18 @@
 // marches its own samples with transmittance starting at 1 and stores the in-scattered
 // radiance (an Epanechnikov density estimate of the photons within `radius`, from the
 // 27-cell neighbourhood, in record order), its transmittance and the historygram of its
-// samples' data values. In MODE_UPDATE a segment is recomputed only when its historygram meets
-// the query or a photon within its reach changed (spatial historygram; without it, any changed
-// photon). `composite` multiplies the segments front to back.
+// samples' data values. `gather_mark` decides which segments are computed (Segment.pad0 = 1):
+// all in MODE_FULL; in MODE_UPDATE those whose historygram meets the query or that a changed
+// photon can reach (spatial historygram; without it, any changed photon). `gather` then runs
+// once per chunk of photon ranks (PhotonUniforms.chunk_*), adding each chunk's radiance, and
+// clears the mark on the last. `composite` multiplies the segments front to back.
 // Rust twin: server/engine/src/passes/photon.rs.
 
 // Below this transmittance inside a segment its march stops.
 const SEGMENT_T_CUTOFF: f32 = 1e-4;
 
-// In-scattered radiance per unit length at x toward out_dir (propagation direction).
+// In-scattered radiance per unit length at x toward out_dir (propagation direction), from the
+// photons of this dispatch's rank chunk in each cell.
 fn gather_at(x: vec3<f32>, out_dir: vec3<f32>) -> vec3<f32> {
     let c = grid_cell3(x);
     let r2 = photon.radius * photon.radius;
@@ -26,8 +29,11 @@ fn gather_at(x: vec3<f32>, out_dir: vec3<f32>) -> vec3<f32> {
                     continue;
                 }
                 let cell = grid_index(n);
-                let first = atomicLoad(&grid_cells[cell]);
-                let end = atomicLoad(&grid_cells[cell + 1u]);
+                let cell_first = atomicLoad(&grid_cells[cell]);
+                let cell_end = atomicLoad(&grid_cells[cell + 1u]);
+                let first = min(cell_first + photon.chunk_first, cell_end);
+                // (chunk_count may be u32::MAX: no overflowing sum.)
+                let end = first + min(photon.chunk_count, cell_end - first);
                 for (var i = first; i < end; i++) {
                     let rec = records[grid_sorted[i]];
                     let d = x - rec.position;
@@ -87,74 +93,101 @@ fn pixel_ray(pixel: u32) -> vec3<f32> {
     return camera_ray_dir(scene, px);
 }
 
+// The box interval [ta, tb) of segment s of a ray that meets the box in hit.
+fn segment_bounds(hit: vec2<f32>, s: u32) -> vec2<f32> {
+    let len = (hit.y - hit.x) / f32(photon.segments);
+    let ta = hit.x + f32(s) * len;
+    var tb = hit.x + f32(s + 1u) * len;
+    if (s + 1u == photon.segments) {
+        tb = hit.y;
+    }
+    return vec2<f32>(ta, tb);
+}
+
+@compute @workgroup_size(64)
+fn gather_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let id = linear_index(gid, groups);
+    if (id >= scene.width * scene.height * photon.segments) {
+        return;
+    }
+    let pixel = id / photon.segments;
+    let dir = pixel_ray(pixel);
+    let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
+    if (hit.x >= hit.y) {
+        if (photon.mode == MODE_FULL) {
+            segments[id] = Segment(vec3<f32>(0.0), 1.0, 0u, 0u, 0u, 0u);
+        }
+        return;
+    }
+    var stale = true;
+    if (photon.mode == MODE_UPDATE) {
+        let bounds = segment_bounds(hit, id % photon.segments);
+        let old = segments[id];
+        stale = hist_hits_query(old.hist_lo, old.hist_hi);
+        if (!stale) {
+            if (photon.spatial == SPATIAL_AXES) {
+                stale = spatial_hit(scene.eye + dir * bounds.x, scene.eye + dir * bounds.y);
+            } else if (photon.spatial == SPATIAL_CELLS) {
+                stale = cells_hit(pixel, hit, bounds.x, bounds.y, dir);
+            } else {
+                stale = atomicLoad(&counters[COUNTER_CHANGED]) > 0u;
+            }
+        }
+        if (stale) {
+            atomicAdd(&counters[COUNTER_SEGMENTS], 1u);
+        }
+    }
+    segments[id].pad0 = select(0u, 1u, stale);
+}
+
 @compute @workgroup_size(64)
 fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let id = linear_index(gid, groups);
     if (id >= scene.width * scene.height * photon.segments) {
         return;
     }
-    let pixel = id / photon.segments;
-    let s = id % photon.segments;
-    let dir = pixel_ray(pixel);
-    let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
-    var seg = Segment(vec3<f32>(0.0), 1.0, 0u, 0u, 0u, 0u);
-    if (hit.x < hit.y) {
-        let len = (hit.y - hit.x) / f32(photon.segments);
-        let ta = hit.x + f32(s) * len;
-        var tb = hit.x + f32(s + 1u) * len;
-        if (s + 1u == photon.segments) {
-            tb = hit.y;
-        }
-        if (photon.mode == MODE_UPDATE) {
-            let old = segments[id];
-            var stale = hist_hits_query(old.hist_lo, old.hist_hi);
-            if (!stale) {
-                if (photon.spatial == SPATIAL_AXES) {
-                    stale = spatial_hit(scene.eye + dir * ta, scene.eye + dir * tb);
-                } else if (photon.spatial == SPATIAL_CELLS) {
-                    stale = cells_hit(pixel, hit, ta, tb, dir);
-                } else {
-                    stale = atomicLoad(&counters[COUNTER_CHANGED]) > 0u;
-                }
-            }
-            if (!stale) {
-                return;
-            }
-            atomicAdd(&counters[COUNTER_SEGMENTS], 1u);
-        }
-        var rng = rng_new(scene.seed, pixel, 0xffffffffu);
-        let jitter = rng_next(&rng);
-        let step = photon.gather_step;
-        // One sample before the first that can fall in [ta, tb), so that the membership of a
-        // sample is decided by the same comparison in neighbouring segments.
-        var k = max(0.0, ceil((ta - hit.x) / step - jitter) - 1.0);
-        var transmit = 1.0;
-        var color = vec3<f32>(0.0);
-        var hist = vec2<u32>(0u);
-        loop {
-            let t = hit.x + (k + jitter) * step;
-            k += 1.0;
-            if (t < ta) {
-                continue;
-            }
-            if (t >= tb || transmit < SEGMENT_T_CUTOFF) {
-                break;
-            }
-            let x = scene.eye + dir * t;
-            let v = data_at(x);
-            hist |= hist_bit(v);
-            let sigma = classify(v).a * scene.density_scale;
-            if (sigma > 0.0) {
-                let w = (1.0 - exp(-sigma * step)) / sigma;
-                color += transmit * w * gather_at(x, -dir);
-                transmit *= exp(-sigma * step);
-            }
-        }
-        seg = Segment(color, transmit, hist.x, hist.y, 0u, 0u);
-    } else if (photon.mode == MODE_UPDATE) {
+    let old = segments[id];
+    if (old.pad0 == 0u) {
         return;
     }
-    segments[id] = seg;
+    let pixel = id / photon.segments;
+    let dir = pixel_ray(pixel);
+    let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
+    let bounds = segment_bounds(hit, id % photon.segments);
+    let ta = bounds.x;
+    let tb = bounds.y;
+    var rng = rng_new(scene.seed, pixel, 0xffffffffu);
+    let jitter = rng_next(&rng);
+    let step = photon.gather_step;
+    // One sample before the first that can fall in [ta, tb), so that the membership of a
+    // sample is decided by the same comparison in neighbouring segments.
+    var k = max(0.0, ceil((ta - hit.x) / step - jitter) - 1.0);
+    var transmit = 1.0;
+    var color = vec3<f32>(0.0);
+    var hist = vec2<u32>(0u);
+    loop {
+        let t = hit.x + (k + jitter) * step;
+        k += 1.0;
+        if (t < ta) {
+            continue;
+        }
+        if (t >= tb || transmit < SEGMENT_T_CUTOFF) {
+            break;
+        }
+        let x = scene.eye + dir * t;
+        let v = data_at(x);
+        hist |= hist_bit(v);
+        let sigma = classify(v).a * scene.density_scale;
+        if (sigma > 0.0) {
+            let w = (1.0 - exp(-sigma * step)) / sigma;
+            color += transmit * w * gather_at(x, -dir);
+            transmit *= exp(-sigma * step);
+        }
+    }
+    if (photon.chunk_first > 0u) {
+        color = old.color + color;
+    }
+    segments[id] = Segment(color, transmit, hist.x, hist.y, select(1u, 0u, photon.chunk_last == 1u), 0u);
 }
 
 @compute @workgroup_size(64)

@@ -150,7 +150,14 @@ impl Gpu {
         self.check()
     }
 
-    /// Reads a whole buffer back (it must have `COPY_SRC` usage). Blocks.
+    /// The most loop iterations one shader invocation may run in all, where the driver has
+    /// such a limit: llvmpipe (lavapipe) silently ends every loop of an invocation once 65535
+    /// iterations have run, so results go missing without an error. Passes whose work grows
+    /// with the data split it into dispatches that stay below this.
+    pub fn loop_limit(&self) -> Option<u32> {
+        self.is_software().then_some(LLVMPIPE_LOOP_LIMIT)
+    }
+
     /// A per-session buffer the queue can write (COPY_DST added), at least 16 bytes.
     pub fn buffer(&self, label: &str, size: u64, usage: wgpu::BufferUsages) -> wgpu::Buffer {
         self.device.create_buffer(&wgpu::BufferDescriptor {
@@ -161,8 +168,18 @@ impl Gpu {
         })
     }
 
+    /// Reads a whole buffer back (it must have `COPY_SRC` usage). Blocks.
     pub fn read_buffer(&self, buffer: &wgpu::Buffer) -> Result<Vec<u8>, EngineError> {
-        let size = buffer.size();
+        self.read_buffer_range(buffer, 0, buffer.size())
+    }
+
+    /// Reads `size` bytes from `offset` back (both multiples of 4). Blocks.
+    pub fn read_buffer_range(
+        &self,
+        buffer: &wgpu::Buffer,
+        offset: u64,
+        size: u64,
+    ) -> Result<Vec<u8>, EngineError> {
         let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("readback staging"),
             size,
@@ -174,7 +191,7 @@ impl Gpu {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("readback"),
             });
-        encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, size);
+        encoder.copy_buffer_to_buffer(buffer, offset, &staging, 0, size);
         self.queue.submit([encoder.finish()]);
         let (sender, receiver) = std::sync::mpsc::channel();
         staging.map_async(wgpu::MapMode::Read, .., move |result| {
@@ -193,6 +210,9 @@ impl Gpu {
         Ok(bytes)
     }
 }
+
+/// llvmpipe's LP_MAX_TGSI_LOOP_ITERATIONS.
+const LLVMPIPE_LOOP_LIMIT: u32 = 65535;
 
 /// Higher is better: discrete > integrated > virtual > CPU; Vulkan preferred among equals.
 fn adapter_rank(info: &wgpu::AdapterInfo) -> (u8, u8) {

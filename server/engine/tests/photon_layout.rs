@@ -4,7 +4,9 @@
 use std::mem::{offset_of, size_of};
 
 use voxlight_engine::passes::photon::{
-    PhotonEmitter, PhotonPath, PhotonRecord, PhotonUniforms, Segment,
+    COUNTER_CHANGED, COUNTER_MAX_CELL, COUNTER_RETRACED, COUNTER_SEGMENTS, COUNTER_SPATIAL,
+    COUNTER_WORDS, MODE_FULL, MODE_UPDATE, PhotonEmitter, PhotonPath, PhotonRecord, PhotonUniforms,
+    SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
 };
 use voxlight_engine::shaders;
 
@@ -49,7 +51,8 @@ fn photon_structs_match_wgsl() {
             size_of::<PhotonUniforms>(),
             fields!(PhotonUniforms: grid_dims, cell_count, radius, kernel_norm, majorant,
                 gather_step, photons_per_pass, path_count, record_count, bounces, path_offset,
-                dispatch_paths, mode, segments, query_lo, query_hi, emitter_count, spatial),
+                dispatch_paths, mode, segments, query_lo, query_hi, emitter_count, spatial,
+                chunk_first, chunk_count, chunk_last, pad0),
         );
         assert_layout(
             &module,
@@ -75,5 +78,41 @@ fn photon_structs_match_wgsl() {
             size_of::<Segment>(),
             fields!(Segment: color, transmittance, hist_lo, hist_hi, pad0, pad1),
         );
+    }
+}
+
+/// The value of the WGSL `const name: u32`.
+fn wgsl_u32(module: &naga::Module, name: &str) -> u32 {
+    let (_, constant) = module
+        .constants
+        .iter()
+        .find(|(_, c)| c.name.as_deref() == Some(name))
+        .unwrap_or_else(|| panic!("const {name} not found in WGSL"));
+    match module.global_expressions[constant.init] {
+        naga::Expression::Literal(naga::Literal::U32(v)) => v,
+        ref other => panic!("const {name} is not a u32 literal: {other:?}"),
+    }
+}
+
+#[test]
+fn photon_constants_match_wgsl() {
+    let source = shaders::photon_gather();
+    let module = naga::front::wgsl::parse_str(&source)
+        .unwrap_or_else(|e| panic!("photon_gather: {}", e.emit_to_string(&source)));
+    for (name, value) in [
+        ("MODE_FULL", MODE_FULL),
+        ("MODE_UPDATE", MODE_UPDATE),
+        ("SPATIAL_NONE", SPATIAL_NONE),
+        ("SPATIAL_AXES", SPATIAL_AXES),
+        ("SPATIAL_CELLS", SPATIAL_CELLS),
+        ("COUNTER_RETRACED", COUNTER_RETRACED as u32),
+        ("COUNTER_CHANGED", COUNTER_CHANGED as u32),
+        ("COUNTER_SEGMENTS", COUNTER_SEGMENTS as u32),
+        ("COUNTER_SPATIAL", COUNTER_SPATIAL as u32),
+        ("COUNTER_MAX_CELL", COUNTER_MAX_CELL as u32),
+        // The dirty-cell bits start right after the counters.
+        ("COUNTER_DIRTY", COUNTER_WORDS as u32),
+    ] {
+        assert_eq!(wgsl_u32(&module, name), value, "{name}");
     }
 }

@@ -1,6 +1,6 @@
 //! The passes of technique `photon` (shaders/photon_*.wgsl): photon tracing
 //! (`photon_trace.wgsl`), the hash-grid build (`photon_grid.wgsl`: clear, count, scan, scatter,
-//! sort) and gathering + compositing (`photon_gather.wgsl`). All share one binding layout
+//! sort) and gathering + compositing (`photon_gather.wgsl`: mark, gather in chunks, composite). All share one binding layout
 //! (declared once in `photon_common.wgsl`) and the `#[repr(C)]` records below.
 
 use bytemuck::{Pod, Zeroable};
@@ -30,6 +30,10 @@ pub struct PhotonUniforms {
     pub query_hi: u32,
     pub emitter_count: u32,
     pub spatial: u32,
+    pub chunk_first: u32,
+    pub chunk_count: u32,
+    pub chunk_last: u32,
+    pub pad0: u32,
 }
 
 /// Matches `PhotonRecord`: one stored photon interaction.
@@ -81,13 +85,14 @@ pub const MODE_UPDATE: u32 = 1;
 pub const EMIT_DIRECTIONAL: u32 = 0;
 pub const EMIT_POINT: u32 = 1;
 pub const EMIT_ENVIRONMENT: u32 = 2;
-/// `counters` words: retraced paths, changed records, recomputed segments, spatial 3×2; the
-/// dirty-cell bits follow.
-pub const COUNTER_WORDS: usize = 9;
+/// `counters` words: retraced paths, changed records, recomputed segments, spatial 3×2, the
+/// most photons in one hash cell; the dirty-cell bits follow.
+pub const COUNTER_WORDS: usize = 10;
 pub const COUNTER_RETRACED: usize = 0;
 pub const COUNTER_CHANGED: usize = 1;
 pub const COUNTER_SEGMENTS: usize = 2;
 pub const COUNTER_SPATIAL: usize = 3;
+pub const COUNTER_MAX_CELL: usize = 9;
 /// `spatial` uniform: how segments learn of changed photons.
 pub const SPATIAL_NONE: u32 = 0;
 pub const SPATIAL_AXES: u32 = 1;
@@ -104,6 +109,7 @@ pub struct PhotonPass {
     pub grid_scan: wgpu::ComputePipeline,
     pub grid_scatter: wgpu::ComputePipeline,
     pub grid_sort: wgpu::ComputePipeline,
+    pub gather_mark: wgpu::ComputePipeline,
     pub gather: wgpu::ComputePipeline,
     pub composite: wgpu::ComputePipeline,
 }
@@ -175,6 +181,7 @@ impl PhotonPass {
             grid_scan: pipeline("photon grid scan", &grid, "grid_scan"),
             grid_scatter: pipeline("photon grid scatter", &grid, "grid_scatter"),
             grid_sort: pipeline("photon grid sort", &grid, "grid_sort"),
+            gather_mark: pipeline("photon gather mark", &gather, "gather_mark"),
             gather: pipeline("photon gather", &gather, "gather"),
             composite: pipeline("photon composite", &gather, "composite"),
             layout,

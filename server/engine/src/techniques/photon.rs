@@ -21,10 +21,10 @@ use std::time::{Duration, Instant};
 use voxlight_protocol::Light;
 
 use crate::passes::photon::{
-    COUNTER_CHANGED, COUNTER_RETRACED, COUNTER_SEGMENTS, COUNTER_SPATIAL, COUNTER_WORDS,
-    EMIT_DIRECTIONAL, EMIT_ENVIRONMENT, EMIT_POINT, MODE_FULL, MODE_UPDATE, PhotonBindings,
-    PhotonEmitter, PhotonPath, PhotonRecord, PhotonUniforms, SPATIAL_AXES, SPATIAL_CELLS,
-    SPATIAL_NONE, Segment, dispatch_linear, dispatch_single,
+    COUNTER_CHANGED, COUNTER_MAX_CELL, COUNTER_RETRACED, COUNTER_SEGMENTS, COUNTER_SPATIAL,
+    COUNTER_WORDS, EMIT_DIRECTIONAL, EMIT_ENVIRONMENT, EMIT_POINT, MODE_FULL, MODE_UPDATE,
+    PhotonBindings, PhotonEmitter, PhotonPath, PhotonRecord, PhotonUniforms, SPATIAL_AXES,
+    SPATIAL_CELLS, SPATIAL_NONE, Segment, dispatch_linear, dispatch_single,
 };
 use crate::scene_gpu::{SceneUniforms, default_step};
 use crate::technique::{StepReport, Technique, TechniqueStats};
@@ -50,6 +50,10 @@ pub struct PhotonParams {
     /// historygram covers only its samples' data values). Every choice keeps the update exact;
     /// they differ in how many segments they recompute.
     pub invalidation: Invalidation,
+    /// Photons per hash cell one gather dispatch visits; 0 sizes the chunks from the device's
+    /// loop limit (`Gpu::loop_limit`; one chunk where there is none). Full recomputes and
+    /// incremental updates chunk alike, so they stay bit-identical either way.
+    pub gather_chunk: u32,
 }
 
 /// How segments detect changed photons after a TF edit.
@@ -93,8 +97,17 @@ impl Default for PhotonParams {
             segments: 8,
             gather_step_voxels: 1.0,
             invalidation: Invalidation::DirtyCells,
+            gather_chunk: 0,
         }
     }
+}
+
+/// The photon ranks (within each hash cell) one gather dispatch visits.
+#[derive(Debug, Clone, Copy, Default)]
+struct GatherChunk {
+    first: u32,
+    count: u32,
+    last: bool,
 }
 
 /// What one incremental TF update did.
@@ -290,6 +303,8 @@ pub struct Photon {
     capacity: u32,
     photons_traced: u64,
     last_update: Option<UpdateReport>,
+    /// Gather dispatches the last grid and gather took.
+    gather_chunks: u32,
 }
 
 impl Photon {
@@ -390,6 +405,7 @@ impl Photon {
             capacity,
             photons_traced: 0,
             last_update: None,
+            gather_chunks: 0,
         };
         technique.write_tf(engine, scene);
         technique.write_emitters(engine, scene);
@@ -410,6 +426,11 @@ impl Photon {
     /// Photon passes in the map.
     pub fn passes(&self) -> u32 {
         self.passes
+    }
+
+    /// Gather dispatches (chunks of photon ranks) the last gather took.
+    pub fn gather_chunks(&self) -> u32 {
+        self.gather_chunks
     }
 
     pub fn last_update(&self) -> Option<UpdateReport> {
@@ -452,9 +473,9 @@ impl Photon {
         engine: &Engine,
         scene: &Scene,
         mode: u32,
-        path_offset: u32,
-        dispatch_paths: u32,
+        trace_paths: std::ops::Range<u32>,
         query: u64,
+        chunk: GatherChunk,
     ) {
         let r = self.budget.radius;
         let path_count = self.passes * self.params.photons_per_pass;
@@ -471,14 +492,18 @@ impl Photon {
             path_count,
             record_count: path_count * self.params.bounces,
             bounces: self.params.bounces,
-            path_offset,
-            dispatch_paths,
+            path_offset: trace_paths.start,
+            dispatch_paths: trace_paths.len() as u32,
             mode,
             segments: self.params.segments,
             query_lo: query as u32,
             query_hi: (query >> 32) as u32,
             emitter_count: self.emitter_count,
             spatial: self.params.invalidation.uniform(),
+            chunk_first: chunk.first,
+            chunk_count: chunk.count,
+            chunk_last: chunk.last as u32,
+            pad0: 0,
         };
         engine
             .gpu
@@ -507,7 +532,14 @@ impl Photon {
         if count == 0 {
             return;
         }
-        self.write_uniforms(engine, scene, mode, offset, count, query);
+        self.write_uniforms(
+            engine,
+            scene,
+            mode,
+            offset..offset + count,
+            query,
+            GatherChunk::default(),
+        );
         let mut encoder = Self::encoder(engine, "photon trace");
         dispatch_linear(
             &mut encoder,
@@ -520,14 +552,22 @@ impl Photon {
     }
 
     /// Rebuilds the grid over every record, gathers segments (all in MODE_FULL, stale ones in
-    /// MODE_UPDATE) and composites.
-    fn grid_and_gather(&self, engine: &Engine, scene: &Scene, mode: u32, query: u64) {
-        self.write_uniforms(engine, scene, mode, 0, 0, query);
+    /// MODE_UPDATE) in chunks of photon ranks sized by the fullest cell, and composites.
+    fn grid_and_gather(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        mode: u32,
+        query: u64,
+    ) -> Result<(), EngineError> {
+        self.write_uniforms(engine, scene, mode, 0..0, query, GatherChunk::default());
         let pass = &engine.photon;
         let bg = &self.bind_group;
-        let mut encoder = Self::encoder(engine, "photon grid and gather");
+        let mut encoder = Self::encoder(engine, "photon grid");
         let cells = self.budget.cells as u32;
         let records = self.passes * self.params.photons_per_pass * self.params.bounces;
+        let pixels = self.width * self.height;
+        let segments = pixels * self.params.segments;
         dispatch_linear(
             &mut encoder,
             "photon grid clear",
@@ -557,22 +597,77 @@ impl Photon {
             bg,
             records,
         );
-        let pixels = self.width * self.height;
         dispatch_linear(
             &mut encoder,
-            "photon gather",
-            &pass.gather,
+            "photon gather mark",
+            &pass.gather_mark,
             bg,
-            pixels * self.params.segments,
-        );
-        dispatch_linear(
-            &mut encoder,
-            "photon composite",
-            &pass.composite,
-            bg,
-            pixels,
+            segments,
         );
         engine.gpu.queue.submit([encoder.finish()]);
+        let fullest = self.fullest_cell(engine)?;
+        let chunk = self.gather_chunk(engine);
+        if let Some(limit) = engine.gpu.loop_limit() {
+            // The grid sort ranks a record among its cell's records in one loop.
+            if fullest >= limit / 2 {
+                return Err(EngineError::InvalidScene(format!(
+                    "photon: {fullest} photons fall in one hash cell, more than this device \
+                     ({}) can visit in one shader invocation; use a smaller gather radius or \
+                     fewer photons per pass",
+                    engine.gpu.adapter_name()
+                )));
+            }
+        }
+        let chunks = fullest.div_ceil(chunk).max(1);
+        self.gather_chunks = chunks;
+        for k in 0..chunks {
+            let last = k + 1 == chunks;
+            let chunk = GatherChunk {
+                first: k * chunk,
+                count: chunk,
+                last,
+            };
+            self.write_uniforms(engine, scene, mode, 0..0, query, chunk);
+            let mut encoder = Self::encoder(engine, "photon gather");
+            dispatch_linear(&mut encoder, "photon gather", &pass.gather, bg, segments);
+            if last {
+                dispatch_linear(
+                    &mut encoder,
+                    "photon composite",
+                    &pass.composite,
+                    bg,
+                    pixels,
+                );
+            }
+            engine.gpu.queue.submit([encoder.finish()]);
+        }
+        Ok(())
+    }
+
+    /// The most photons in one hash cell of the grid just built (blocks on the GPU).
+    fn fullest_cell(&self, engine: &Engine) -> Result<u32, EngineError> {
+        let bytes = engine
+            .gpu
+            .read_buffer_range(&self.counters, COUNTER_MAX_CELL as u64 * 4, 4)?;
+        Ok(bytemuck::pod_read_unaligned::<u32>(&bytes[..4]))
+    }
+
+    /// Photons per hash cell that one gather dispatch may visit. A segment marches at most
+    /// `samples` samples; each visits the 27 cells (3 + 9 + 27 loop iterations) and up to
+    /// `chunk` photons in each, which must stay within the device's loop limit.
+    fn gather_chunk(&self, engine: &Engine) -> u32 {
+        if self.params.gather_chunk > 0 {
+            return self.params.gather_chunk;
+        }
+        let Some(limit) = engine.gpu.loop_limit() else {
+            return u32::MAX;
+        };
+        let diagonal = self.volume.extent.iter().map(|e| e * e).sum::<f32>().sqrt();
+        let step = 2.0 * default_step(&self.volume) * self.params.gather_step_voxels;
+        let samples = (diagonal / self.params.segments as f32 / step).ceil() as u32 + 3;
+        // A tenth of the limit is left for the rest of the invocation.
+        let per_sample = (limit - limit / 10) / samples;
+        (per_sample.saturating_sub(40) / 27).max(1)
     }
 
     /// One progressive pass: more photons, then every segment gathered from all of them.
@@ -582,7 +677,7 @@ impl Photon {
         self.passes += 1;
         self.write_scene(engine, scene)?;
         self.trace(engine, scene, MODE_FULL, offset, p, 0);
-        self.grid_and_gather(engine, scene, MODE_FULL, 0);
+        self.grid_and_gather(engine, scene, MODE_FULL, 0)?;
         self.photons_traced += p as u64;
         Ok(())
     }
@@ -601,7 +696,7 @@ impl Photon {
         self.write_scene(engine, scene)?;
         let paths = self.passes * self.params.photons_per_pass;
         self.trace(engine, scene, MODE_FULL, 0, paths, 0);
-        self.grid_and_gather(engine, scene, MODE_FULL, 0);
+        self.grid_and_gather(engine, scene, MODE_FULL, 0)?;
         self.photons_traced += paths as u64;
         engine.gpu.wait_idle()
     }
@@ -635,7 +730,7 @@ impl Photon {
         );
         self.write_scene(engine, scene)?;
         self.trace(engine, scene, MODE_UPDATE, 0, paths, query);
-        self.grid_and_gather(engine, scene, MODE_UPDATE, query);
+        self.grid_and_gather(engine, scene, MODE_UPDATE, query)?;
         let bytes = engine.gpu.read_buffer(&self.counters)?;
         let words: &[u32] = bytemuck::try_cast_slice(&bytes)
             .map_err(|e| EngineError::Gpu(format!("photon counters readback: {e}")))?;
@@ -781,7 +876,7 @@ impl Technique for Photon {
                 // Photons do not depend on the camera: gather again.
                 if self.passes > 0 {
                     self.write_scene(engine, scene)?;
-                    self.grid_and_gather(engine, scene, MODE_FULL, 0);
+                    self.grid_and_gather(engine, scene, MODE_FULL, 0)?;
                 }
             }
             Change::Lights | Change::Params => {
