@@ -36,13 +36,12 @@ struct PhotonUniforms {
     // hash-grid cell, dilated by one cell).
     spatial: u32,
     // The gather visits, in each hash cell, the photons of rank [chunk_first, chunk_first +
-    // chunk_count) per dispatch (chunk_last = 1 on the last). Splitting keeps every
-    // invocation's loop iterations bounded: llvmpipe silently ends an invocation's loops after
-    // 65535 iterations in all.
+    // chunk_count) per dispatch. Splitting keeps every invocation's loop iterations bounded:
+    // llvmpipe silently ends an invocation's loops after 65535 iterations in all.
     chunk_first: u32,
     chunk_count: u32,
-    chunk_last: u32,
     pad0: u32,
+    pad1: u32,
 }
 
 // A stored photon interaction (a real collision): where, the direction it arrived from (travel
@@ -96,14 +95,16 @@ const CELL_NONE: u32 = 0xffffffffu;
 const HIST_BINS: u32 = 64u;
 
 // Counters written by the passes: retraced paths, changed photon records, recomputed segments,
-// the spatial historygram (x lo/hi, y lo/hi, z lo/hi), the most photons in one hash cell.
+// the spatial historygram (x lo/hi, y lo/hi, z lo/hi), the most photons in one hash cell, the
+// segments gather_mark listed.
 const COUNTER_RETRACED: u32 = 0u;
 const COUNTER_CHANGED: u32 = 1u;
 const COUNTER_SEGMENTS: u32 = 2u;
 const COUNTER_SPATIAL: u32 = 3u;
 const COUNTER_MAX_CELL: u32 = 9u;
+const COUNTER_LIST: u32 = 10u;
 // Dirty-cell bits (SPATIAL_CELLS) follow the counters.
-const COUNTER_DIRTY: u32 = 10u;
+const COUNTER_DIRTY: u32 = 11u;
 const SPATIAL_NONE: u32 = 0u;
 const SPATIAL_AXES: u32 = 1u;
 const SPATIAL_CELLS: u32 = 2u;
@@ -122,6 +123,8 @@ const SPATIAL_CELLS: u32 = 2u;
 @group(0) @binding(9) var<storage, read_write> segments: array<Segment>;
 @group(0) @binding(10) var<storage, read_write> accum: array<vec4<f32>>;
 @group(0) @binding(11) var<storage, read_write> counters: array<atomic<u32>>;
+// The segments the gather computes, listed by gather_mark (COUNTER_LIST of them).
+@group(0) @binding(12) var<storage, read_write> gather_list: array<u32>;
 
 // Linear invocation index of a 1D problem dispatched as a 2D grid of 64-wide workgroups.
 fn linear_index(gid: vec3<u32>, groups: vec3<u32>) -> u32 {

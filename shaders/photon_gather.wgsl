@@ -4,11 +4,12 @@
 // marches its own samples with transmittance starting at 1 and stores the in-scattered
 // radiance (an Epanechnikov density estimate of the photons within `radius`, from the
 // 27-cell neighbourhood, in record order), its transmittance and the historygram of its
-// samples' data values. `gather_mark` decides which segments are computed (Segment.pad0 = 1):
-// all in MODE_FULL; in MODE_UPDATE those whose historygram meets the query or that a changed
-// photon can reach (spatial historygram; without it, any changed photon). `gather` then runs
-// once per chunk of photon ranks (PhotonUniforms.chunk_*), adding each chunk's radiance, and
-// clears the mark on the last. `composite` multiplies the segments front to back.
+// samples' data values. `gather_mark` lists the segments to compute in gather_list: all in
+// MODE_FULL; in MODE_UPDATE those whose historygram meets the query or that a changed photon
+// can reach (spatial historygram; without it, any changed photon). Listing them keeps every
+// SIMD lane of the gather busy (a sparse update would otherwise pay for whole idle batches).
+// `gather` then runs over the list once per chunk of photon ranks (PhotonUniforms.chunk_*),
+// adding each chunk's radiance. `composite` multiplies the segments front to back.
 // Rust twin: server/engine/src/passes/photon.rs.
 
 // Below this transmittance inside a segment its march stops.
@@ -137,19 +138,18 @@ fn gather_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
             atomicAdd(&counters[COUNTER_SEGMENTS], 1u);
         }
     }
-    segments[id].pad0 = select(0u, 1u, stale);
+    if (stale) {
+        gather_list[atomicAdd(&counters[COUNTER_LIST], 1u)] = id;
+    }
 }
 
 @compute @workgroup_size(64)
 fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let id = linear_index(gid, groups);
-    if (id >= scene.width * scene.height * photon.segments) {
+    let slot = linear_index(gid, groups);
+    if (slot >= atomicLoad(&counters[COUNTER_LIST])) {
         return;
     }
-    let old = segments[id];
-    if (old.pad0 == 0u) {
-        return;
-    }
+    let id = gather_list[slot];
     let pixel = id / photon.segments;
     let dir = pixel_ray(pixel);
     let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
@@ -185,9 +185,9 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
         }
     }
     if (photon.chunk_first > 0u) {
-        color = old.color + color;
+        color = segments[id].color + color;
     }
-    segments[id] = Segment(color, transmit, hist.x, hist.y, select(1u, 0u, photon.chunk_last == 1u), 0u);
+    segments[id] = Segment(color, transmit, hist.x, hist.y, 0u, 0u);
 }
 
 @compute @workgroup_size(64)

@@ -4,9 +4,9 @@
 use std::mem::{offset_of, size_of};
 
 use voxlight_engine::passes::photon::{
-    COUNTER_CHANGED, COUNTER_MAX_CELL, COUNTER_RETRACED, COUNTER_SEGMENTS, COUNTER_SPATIAL,
-    COUNTER_WORDS, MODE_FULL, MODE_UPDATE, PhotonEmitter, PhotonPath, PhotonRecord, PhotonUniforms,
-    SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
+    COUNTER_CHANGED, COUNTER_LIST, COUNTER_MAX_CELL, COUNTER_RETRACED, COUNTER_SEGMENTS,
+    COUNTER_SPATIAL, COUNTER_WORDS, MODE_FULL, MODE_UPDATE, PhotonEmitter, PhotonPath,
+    PhotonRecord, PhotonUniforms, SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
 };
 use voxlight_engine::shaders;
 
@@ -52,7 +52,7 @@ fn photon_structs_match_wgsl() {
             fields!(PhotonUniforms: grid_dims, cell_count, radius, kernel_norm, majorant,
                 gather_step, photons_per_pass, path_count, record_count, bounces, path_offset,
                 dispatch_paths, mode, segments, query_lo, query_hi, emitter_count, spatial,
-                chunk_first, chunk_count, chunk_last, pad0),
+                chunk_first, chunk_count, pad0, pad1),
         );
         assert_layout(
             &module,
@@ -110,6 +110,7 @@ fn photon_constants_match_wgsl() {
         ("COUNTER_SEGMENTS", COUNTER_SEGMENTS as u32),
         ("COUNTER_SPATIAL", COUNTER_SPATIAL as u32),
         ("COUNTER_MAX_CELL", COUNTER_MAX_CELL as u32),
+        ("COUNTER_LIST", COUNTER_LIST as u32),
         // The dirty-cell bits start right after the counters.
         ("COUNTER_DIRTY", COUNTER_WORDS as u32),
     ] {

@@ -32,8 +32,8 @@ pub struct PhotonUniforms {
     pub spatial: u32,
     pub chunk_first: u32,
     pub chunk_count: u32,
-    pub chunk_last: u32,
     pub pad0: u32,
+    pub pad1: u32,
 }
 
 /// Matches `PhotonRecord`: one stored photon interaction.
@@ -86,13 +86,15 @@ pub const EMIT_DIRECTIONAL: u32 = 0;
 pub const EMIT_POINT: u32 = 1;
 pub const EMIT_ENVIRONMENT: u32 = 2;
 /// `counters` words: retraced paths, changed records, recomputed segments, spatial 3×2, the
-/// most photons in one hash cell; the dirty-cell bits follow.
-pub const COUNTER_WORDS: usize = 10;
+/// most photons in one hash cell, listed segments; the dirty-cell bits follow.
+pub const COUNTER_WORDS: usize = 11;
 pub const COUNTER_RETRACED: usize = 0;
 pub const COUNTER_CHANGED: usize = 1;
 pub const COUNTER_SEGMENTS: usize = 2;
 pub const COUNTER_SPATIAL: usize = 3;
 pub const COUNTER_MAX_CELL: usize = 9;
+/// Segments `gather_mark` listed for the gather (must follow COUNTER_MAX_CELL: read together).
+pub const COUNTER_LIST: usize = 10;
 /// `spatial` uniform: how segments learn of changed photons.
 pub const SPATIAL_NONE: u32 = 0;
 pub const SPATIAL_AXES: u32 = 1;
@@ -126,6 +128,7 @@ pub struct PhotonBindings<'a> {
     pub grid_cells: &'a wgpu::Buffer,
     pub grid_sorted: &'a wgpu::Buffer,
     pub segments: &'a wgpu::Buffer,
+    pub gather_list: &'a wgpu::Buffer,
     pub accum: &'a wgpu::Buffer,
     pub counters: &'a wgpu::Buffer,
 }
@@ -148,6 +151,7 @@ impl PhotonPass {
                 storage_entry(9, false),
                 storage_entry(10, false),
                 storage_entry(11, false),
+                storage_entry(12, false),
             ],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -201,6 +205,7 @@ impl PhotonPass {
             (9, b.segments),
             (10, b.accum),
             (11, b.counters),
+            (12, b.gather_list),
         ];
         let mut entries: Vec<wgpu::BindGroupEntry> = buffers
             .iter()

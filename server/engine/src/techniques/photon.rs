@@ -107,7 +107,6 @@ impl Default for PhotonParams {
 struct GatherChunk {
     first: u32,
     count: u32,
-    last: bool,
 }
 
 /// What one incremental TF update did.
@@ -158,6 +157,8 @@ pub struct PhotonBudget {
     pub grid_cell_bytes: u64,
     pub grid_sorted_bytes: u64,
     pub segment_bytes: u64,
+    /// The segments one gather computes (indices), compacted by `gather_mark`.
+    pub gather_list_bytes: u64,
     pub accum_bytes: u64,
     /// Counters plus one dirty bit per grid cell.
     pub counter_bytes: u64,
@@ -207,6 +208,7 @@ impl PhotonBudget {
         // Sorted indices, then the scatter's scratch.
         let grid_sorted_bytes = 2 * records * 4;
         let segment_bytes = pixels * params.segments as u64 * size_of::<Segment>() as u64;
+        let gather_list_bytes = pixels * params.segments as u64 * 4;
         let accum_bytes = pixels * 16;
         let counter_bytes = (COUNTER_WORDS as u64 + cells.div_ceil(32)) * 4;
         let small = (TF_LUT_SIZE * 16
@@ -219,6 +221,7 @@ impl PhotonBudget {
             + grid_cell_bytes
             + grid_sorted_bytes
             + segment_bytes
+            + gather_list_bytes
             + accum_bytes
             + small;
         Ok(Self {
@@ -232,6 +235,7 @@ impl PhotonBudget {
             grid_cell_bytes,
             grid_sorted_bytes,
             segment_bytes,
+            gather_list_bytes,
             accum_bytes,
             counter_bytes,
             total,
@@ -250,6 +254,7 @@ impl PhotonBudget {
             self.grid_cell_bytes,
             self.grid_sorted_bytes,
             self.segment_bytes,
+            self.gather_list_bytes,
             self.accum_bytes,
             self.counter_bytes,
         ]
@@ -359,6 +364,8 @@ impl Photon {
             budget.segment_bytes,
             U::STORAGE | U::COPY_SRC,
         );
+        // Only the shaders use it; the bind group keeps it alive.
+        let gather_list = buffer("photon gather list", budget.gather_list_bytes, U::STORAGE);
         let accum = buffer("photon accum", budget.accum_bytes, U::STORAGE | U::COPY_SRC);
         let counters = buffer(
             "photon counters",
@@ -378,6 +385,7 @@ impl Photon {
                 grid_cells: &grid_cells,
                 grid_sorted: &grid_sorted,
                 segments: &segments,
+                gather_list: &gather_list,
                 accum: &accum,
                 counters: &counters,
             },
@@ -502,8 +510,8 @@ impl Photon {
             spatial: self.params.invalidation.uniform(),
             chunk_first: chunk.first,
             chunk_count: chunk.count,
-            chunk_last: chunk.last as u32,
             pad0: 0,
+            pad1: 0,
         };
         engine
             .gpu
@@ -552,7 +560,8 @@ impl Photon {
     }
 
     /// Rebuilds the grid over every record, gathers segments (all in MODE_FULL, stale ones in
-    /// MODE_UPDATE) in chunks of photon ranks sized by the fullest cell, and composites.
+    /// MODE_UPDATE; `gather_mark` lists them so that the gather's SIMD lanes all work) in
+    /// chunks of photon ranks sized by the fullest cell, and composites.
     fn grid_and_gather(
         &mut self,
         engine: &Engine,
@@ -605,7 +614,7 @@ impl Photon {
             segments,
         );
         engine.gpu.queue.submit([encoder.finish()]);
-        let fullest = self.fullest_cell(engine)?;
+        let (fullest, listed) = self.fullest_cell_and_listed(engine)?;
         let chunk = self.gather_chunk(engine);
         if let Some(limit) = engine.gpu.loop_limit() {
             // The grid sort ranks a record among its cell's records in one loop.
@@ -625,11 +634,12 @@ impl Photon {
             let chunk = GatherChunk {
                 first: k * chunk,
                 count: chunk,
-                last,
             };
             self.write_uniforms(engine, scene, mode, 0..0, query, chunk);
             let mut encoder = Self::encoder(engine, "photon gather");
-            dispatch_linear(&mut encoder, "photon gather", &pass.gather, bg, segments);
+            if listed > 0 {
+                dispatch_linear(&mut encoder, "photon gather", &pass.gather, bg, listed);
+            }
             if last {
                 dispatch_linear(
                     &mut encoder,
@@ -644,12 +654,15 @@ impl Photon {
         Ok(())
     }
 
-    /// The most photons in one hash cell of the grid just built (blocks on the GPU).
-    fn fullest_cell(&self, engine: &Engine) -> Result<u32, EngineError> {
+    /// The most photons in one hash cell of the grid just built, and how many segments the
+    /// gather will compute (blocks on the GPU).
+    fn fullest_cell_and_listed(&self, engine: &Engine) -> Result<(u32, u32), EngineError> {
+        // COUNTER_LIST follows COUNTER_MAX_CELL.
         let bytes = engine
             .gpu
-            .read_buffer_range(&self.counters, COUNTER_MAX_CELL as u64 * 4, 4)?;
-        Ok(bytemuck::pod_read_unaligned::<u32>(&bytes[..4]))
+            .read_buffer_range(&self.counters, COUNTER_MAX_CELL as u64 * 4, 8)?;
+        let word = |i: usize| bytemuck::pod_read_unaligned::<u32>(&bytes[4 * i..4 * i + 4]);
+        Ok((word(0), word(1)))
     }
 
     /// Photons per hash cell that one gather dispatch may visit. A segment marches at most
