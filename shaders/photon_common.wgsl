@@ -35,11 +35,10 @@ struct PhotonUniforms {
     // segment), SPATIAL_AXES (the 3×64-bit spatial historygram), SPATIAL_CELLS (a dirty bit per
     // hash-grid cell, dilated by one cell).
     spatial: u32,
-    // The gather visits, in each hash cell, the photons of rank [chunk_first, chunk_first +
-    // chunk_count) per dispatch. Splitting keeps every invocation's loop iterations bounded:
-    // llvmpipe silently ends an invocation's loops after 65535 iterations in all.
-    chunk_first: u32,
-    chunk_count: u32,
+    // Gather rounds: which half of gather_list (and COUNTER_LIST word) is this round's input,
+    // and the loop iterations an invocation may run before it keeps its place for the next.
+    round_input: u32,
+    round_budget: u32,
     pad0: u32,
     pad1: u32,
 }
@@ -75,6 +74,20 @@ struct PhotonEmitter {
     cdf: f32,
 }
 
+// A segment's gather between rounds: the current sample's photon sum so far (partial), its
+// lattice index k, the segment's radiance, transmittance and historygram so far, and the place
+// in the 27-cell neighbourhood (cell, see photon_gather.wgsl; rank within that cell).
+struct GatherState {
+    partial: vec3<f32>,
+    k: f32,
+    color: vec3<f32>,
+    transmit: f32,
+    hist_lo: u32,
+    hist_hi: u32,
+    cell: u32,
+    rank: u32,
+}
+
 // One view-ray segment: in-scattered radiance (rgb, transmittance inside the segment starts at
 // 1), the segment's transmittance and the historygram of its samples' data values.
 struct Segment {
@@ -96,15 +109,16 @@ const HIST_BINS: u32 = 64u;
 
 // Counters written by the passes: retraced paths, changed photon records, recomputed segments,
 // the spatial historygram (x lo/hi, y lo/hi, z lo/hi), the most photons in one hash cell, the
-// segments gather_mark listed.
+// segments listed in each half of gather_list.
 const COUNTER_RETRACED: u32 = 0u;
 const COUNTER_CHANGED: u32 = 1u;
 const COUNTER_SEGMENTS: u32 = 2u;
 const COUNTER_SPATIAL: u32 = 3u;
 const COUNTER_MAX_CELL: u32 = 9u;
+// Segments in the two halves of gather_list (two words).
 const COUNTER_LIST: u32 = 10u;
 // Dirty-cell bits (SPATIAL_CELLS) follow the counters.
-const COUNTER_DIRTY: u32 = 11u;
+const COUNTER_DIRTY: u32 = 12u;
 const SPATIAL_NONE: u32 = 0u;
 const SPATIAL_AXES: u32 = 1u;
 const SPATIAL_CELLS: u32 = 2u;
@@ -123,8 +137,11 @@ const SPATIAL_CELLS: u32 = 2u;
 @group(0) @binding(9) var<storage, read_write> segments: array<Segment>;
 @group(0) @binding(10) var<storage, read_write> accum: array<vec4<f32>>;
 @group(0) @binding(11) var<storage, read_write> counters: array<atomic<u32>>;
-// The segments the gather computes, listed by gather_mark (COUNTER_LIST of them).
+// The segments the gather computes: two halves of width·height·segments, this round's input
+// and the unfinished ones for the next (COUNTER_LIST + half of them each).
 @group(0) @binding(12) var<storage, read_write> gather_list: array<u32>;
+// Where an unfinished segment's gather stands, by segment.
+@group(0) @binding(13) var<storage, read_write> gather_state: array<GatherState>;
 
 // Linear invocation index of a 1D problem dispatched as a 2D grid of 64-wide workgroups.
 fn linear_index(gid: vec3<u32>, groups: vec3<u32>) -> u32 {

@@ -4,50 +4,21 @@
 // marches its own samples with transmittance starting at 1 and stores the in-scattered
 // radiance (an Epanechnikov density estimate of the photons within `radius`, from the
 // 27-cell neighbourhood, in record order), its transmittance and the historygram of its
-// samples' data values. `gather_mark` lists the segments to compute in gather_list: all in
-// MODE_FULL; in MODE_UPDATE those whose historygram meets the query or that a changed photon
-// can reach (spatial historygram; without it, any changed photon). Listing them keeps every
-// SIMD lane of the gather busy (a sparse update would otherwise pay for whole idle batches).
-// `gather` then runs over the list once per chunk of photon ranks (PhotonUniforms.chunk_*),
-// adding each chunk's radiance. `composite` multiplies the segments front to back.
+// samples' data values. `gather_mark` lists the segments to compute: all in MODE_FULL; in
+// MODE_UPDATE those whose historygram meets the query or that a changed photon can reach
+// (spatial historygram; without it, any changed photon). Listing them keeps every SIMD lane of
+// the gather busy (a sparse update would otherwise pay for whole idle batches).
+//
+// `gather` is one flat loop (one photon, one neighbour cell or one sample per iteration) that
+// stops after `round_budget` iterations and keeps its place in `gather_state`; the host runs
+// rounds over the segments still listed until none is left. The sums are formed in the same
+// order whatever the budget, so the result does not depend on it: llvmpipe silently ends an
+// invocation's loops after 65535 iterations in all, and dense cells exceed that.
+// `composite` multiplies the segments front to back.
 // Rust twin: server/engine/src/passes/photon.rs.
 
 // Below this transmittance inside a segment its march stops.
 const SEGMENT_T_CUTOFF: f32 = 1e-4;
-
-// In-scattered radiance per unit length at x toward out_dir (propagation direction), from the
-// photons of this dispatch's rank chunk in each cell.
-fn gather_at(x: vec3<f32>, out_dir: vec3<f32>) -> vec3<f32> {
-    let c = grid_cell3(x);
-    let r2 = photon.radius * photon.radius;
-    let dims = vec3<i32>(photon.grid_dims);
-    var s = vec3<f32>(0.0);
-    for (var dz = -1; dz <= 1; dz++) {
-        for (var dy = -1; dy <= 1; dy++) {
-            for (var dx = -1; dx <= 1; dx++) {
-                let n = c + vec3<i32>(dx, dy, dz);
-                if (any(n < vec3<i32>(0)) || any(n >= dims)) {
-                    continue;
-                }
-                let cell = grid_index(n);
-                let cell_first = atomicLoad(&grid_cells[cell]);
-                let cell_end = atomicLoad(&grid_cells[cell + 1u]);
-                let first = min(cell_first + photon.chunk_first, cell_end);
-                // (chunk_count may be u32::MAX: no overflowing sum.)
-                let end = first + min(photon.chunk_count, cell_end - first);
-                for (var i = first; i < end; i++) {
-                    let rec = records[grid_sorted[i]];
-                    let d = x - rec.position;
-                    let d2 = dot(d, d);
-                    if (d2 < r2) {
-                        s += rec.power * (phase_hg(dot(rec.direction, out_dir), scene.g) * (1.0 - d2 / r2));
-                    }
-                }
-            }
-        }
-    }
-    return s * photon.kernel_norm;
-}
 
 // Whether a photon change recorded in the spatial historygram can reach the segment a..b.
 fn spatial_hit(a: vec3<f32>, b: vec3<f32>) -> bool {
@@ -68,12 +39,10 @@ fn spatial_hit(a: vec3<f32>, b: vec3<f32>) -> bool {
 // photons are marked with their 26 neighbours, so this finds every change within the gather
 // radius of a sample. Visits every lattice sample in [ta, tb) (a superset of those gathered).
 fn cells_hit(pixel: u32, hit: vec2<f32>, ta: f32, tb: f32, dir: vec3<f32>) -> bool {
-    var rng = rng_new(scene.seed, pixel, 0xffffffffu);
-    let jitter = rng_next(&rng);
-    let step = photon.gather_step;
-    var k = max(0.0, ceil((ta - hit.x) / step - jitter) - 1.0);
+    let jitter = pixel_jitter(pixel);
+    var k = first_lattice_index(hit, ta, jitter);
     loop {
-        let t = hit.x + (k + jitter) * step;
+        let t = hit.x + (k + jitter) * photon.gather_step;
         k += 1.0;
         if (t < ta) {
             continue;
@@ -105,6 +74,17 @@ fn segment_bounds(hit: vec2<f32>, s: u32) -> vec2<f32> {
     return vec2<f32>(ta, tb);
 }
 
+// Lattice index of the first sample that can fall in [ta, tb), less one, so that the
+// membership of a sample is decided by the same comparison in neighbouring segments.
+fn first_lattice_index(hit: vec2<f32>, ta: f32, jitter: f32) -> f32 {
+    return max(0.0, ceil((ta - hit.x) / photon.gather_step - jitter) - 1.0);
+}
+
+fn pixel_jitter(pixel: u32) -> f32 {
+    var rng = rng_new(scene.seed, pixel, 0xffffffffu);
+    return rng_next(&rng);
+}
+
 @compute @workgroup_size(64)
 fn gather_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let id = linear_index(gid, groups);
@@ -120,9 +100,9 @@ fn gather_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         }
         return;
     }
+    let bounds = segment_bounds(hit, id % photon.segments);
     var stale = true;
     if (photon.mode == MODE_UPDATE) {
-        let bounds = segment_bounds(hit, id % photon.segments);
         let old = segments[id];
         stale = hist_hits_query(old.hist_lo, old.hist_hi);
         if (!stale) {
@@ -139,55 +119,106 @@ fn gather_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         }
     }
     if (stale) {
+        let k = first_lattice_index(hit, bounds.x, pixel_jitter(pixel));
+        gather_state[id] = GatherState(vec3<f32>(0.0), k, vec3<f32>(0.0), 1.0, 0u, 0u, NEXT_SAMPLE, 0u);
         gather_list[atomicAdd(&counters[COUNTER_LIST], 1u)] = id;
     }
 }
 
+// GatherState.cell: 0..26 = the neighbour cell being visited (dz, dy, dx from −1, dx fastest),
+// SAMPLE_DONE = the sample's photons are summed, NEXT_SAMPLE = take the next lattice sample.
+const SAMPLE_DONE: u32 = 27u;
+const NEXT_SAMPLE: u32 = 28u;
+
 @compute @workgroup_size(64)
 fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let slot = linear_index(gid, groups);
-    if (slot >= atomicLoad(&counters[COUNTER_LIST])) {
+    let segment_count = scene.width * scene.height * photon.segments;
+    if (slot >= atomicLoad(&counters[COUNTER_LIST + photon.round_input])) {
         return;
     }
-    let id = gather_list[slot];
+    let id = gather_list[photon.round_input * segment_count + slot];
     let pixel = id / photon.segments;
     let dir = pixel_ray(pixel);
+    let out_dir = -dir;
     let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
     let bounds = segment_bounds(hit, id % photon.segments);
-    let ta = bounds.x;
-    let tb = bounds.y;
-    var rng = rng_new(scene.seed, pixel, 0xffffffffu);
-    let jitter = rng_next(&rng);
+    let jitter = pixel_jitter(pixel);
     let step = photon.gather_step;
-    // One sample before the first that can fall in [ta, tb), so that the membership of a
-    // sample is decided by the same comparison in neighbouring segments.
-    var k = max(0.0, ceil((ta - hit.x) / step - jitter) - 1.0);
-    var transmit = 1.0;
-    var color = vec3<f32>(0.0);
-    var hist = vec2<u32>(0u);
+    let r2 = photon.radius * photon.radius;
+    let dims = vec3<i32>(photon.grid_dims);
+    var st = gather_state[id];
+    // The current sample (recomputed when resuming inside one).
+    var x = scene.eye + dir * (hit.x + (st.k + jitter) * step);
+    var sigma = 0.0;
+    if (st.cell < NEXT_SAMPLE) {
+        sigma = classify(data_at(x)).a * scene.density_scale;
+    }
+    var centre = grid_cell3(x);
+    var iterations = 0u;
     loop {
-        let t = hit.x + (k + jitter) * step;
-        k += 1.0;
-        if (t < ta) {
+        if (iterations >= photon.round_budget) {
+            gather_state[id] = st;
+            let next = 1u - photon.round_input;
+            gather_list[next * segment_count + atomicAdd(&counters[COUNTER_LIST + next], 1u)] = id;
+            return;
+        }
+        iterations += 1u;
+        if (st.cell < SAMPLE_DONE) {
+            let offset = vec3<i32>(i32(st.cell % 3u), i32(st.cell / 3u % 3u), i32(st.cell / 9u)) - 1;
+            let n = centre + offset;
+            if (any(n < vec3<i32>(0)) || any(n >= dims)) {
+                st.cell += 1u;
+                continue;
+            }
+            let cell = grid_index(n);
+            let i = atomicLoad(&grid_cells[cell]) + st.rank;
+            if (i < atomicLoad(&grid_cells[cell + 1u])) {
+                let rec = records[grid_sorted[i]];
+                let d = x - rec.position;
+                let d2 = dot(d, d);
+                if (d2 < r2) {
+                    st.partial += rec.power * (phase_hg(dot(rec.direction, out_dir), scene.g) * (1.0 - d2 / r2));
+                }
+                st.rank += 1u;
+            } else {
+                st.cell += 1u;
+                st.rank = 0u;
+            }
             continue;
         }
-        if (t >= tb || transmit < SEGMENT_T_CUTOFF) {
+        if (st.cell == SAMPLE_DONE) {
+            let w = (1.0 - exp(-sigma * step)) / sigma;
+            st.color += st.transmit * w * (st.partial * photon.kernel_norm);
+            st.transmit *= exp(-sigma * step);
+            st.partial = vec3<f32>(0.0);
+            st.k += 1.0;
+            st.cell = NEXT_SAMPLE;
+            continue;
+        }
+        let t = hit.x + (st.k + jitter) * step;
+        if (t < bounds.x) {
+            st.k += 1.0;
+            continue;
+        }
+        if (t >= bounds.y || st.transmit < SEGMENT_T_CUTOFF) {
             break;
         }
-        let x = scene.eye + dir * t;
+        x = scene.eye + dir * t;
         let v = data_at(x);
-        hist |= hist_bit(v);
-        let sigma = classify(v).a * scene.density_scale;
+        let bit = hist_bit(v);
+        st.hist_lo |= bit.x;
+        st.hist_hi |= bit.y;
+        sigma = classify(v).a * scene.density_scale;
         if (sigma > 0.0) {
-            let w = (1.0 - exp(-sigma * step)) / sigma;
-            color += transmit * w * gather_at(x, -dir);
-            transmit *= exp(-sigma * step);
+            centre = grid_cell3(x);
+            st.cell = 0u;
+            st.rank = 0u;
+        } else {
+            st.k += 1.0;
         }
     }
-    if (photon.chunk_first > 0u) {
-        color = segments[id].color + color;
-    }
-    segments[id] = Segment(color, transmit, hist.x, hist.y, 0u, 0u);
+    segments[id] = Segment(st.color, st.transmit, st.hist_lo, st.hist_hi, 0u, 0u);
 }
 
 @compute @workgroup_size(64)

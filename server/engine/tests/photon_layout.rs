@@ -5,7 +5,7 @@ use std::mem::{offset_of, size_of};
 
 use voxlight_engine::passes::photon::{
     COUNTER_CHANGED, COUNTER_LIST, COUNTER_MAX_CELL, COUNTER_RETRACED, COUNTER_SEGMENTS,
-    COUNTER_SPATIAL, COUNTER_WORDS, MODE_FULL, MODE_UPDATE, PhotonEmitter, PhotonPath,
+    COUNTER_SPATIAL, COUNTER_WORDS, GatherState, MODE_FULL, MODE_UPDATE, PhotonEmitter, PhotonPath,
     PhotonRecord, PhotonUniforms, SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
 };
 use voxlight_engine::shaders;
@@ -52,7 +52,7 @@ fn photon_structs_match_wgsl() {
             fields!(PhotonUniforms: grid_dims, cell_count, radius, kernel_norm, majorant,
                 gather_step, photons_per_pass, path_count, record_count, bounces, path_offset,
                 dispatch_paths, mode, segments, query_lo, query_hi, emitter_count, spatial,
-                chunk_first, chunk_count, pad0, pad1),
+                round_input, round_budget, pad0, pad1),
         );
         assert_layout(
             &module,
@@ -77,6 +77,12 @@ fn photon_structs_match_wgsl() {
             "Segment",
             size_of::<Segment>(),
             fields!(Segment: color, transmittance, hist_lo, hist_hi, pad0, pad1),
+        );
+        assert_layout(
+            &module,
+            "GatherState",
+            size_of::<GatherState>(),
+            fields!(GatherState: partial, k, color, transmit, hist_lo, hist_hi, cell, rank),
         );
     }
 }

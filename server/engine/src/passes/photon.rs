@@ -30,8 +30,8 @@ pub struct PhotonUniforms {
     pub query_hi: u32,
     pub emitter_count: u32,
     pub spatial: u32,
-    pub chunk_first: u32,
-    pub chunk_count: u32,
+    pub round_input: u32,
+    pub round_budget: u32,
     pub pad0: u32,
     pub pad1: u32,
 }
@@ -80,6 +80,20 @@ pub struct Segment {
     pub pad1: u32,
 }
 
+/// Matches `GatherState`: where a segment's gather stands between rounds.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
+pub struct GatherState {
+    pub partial: [f32; 3],
+    pub k: f32,
+    pub color: [f32; 3],
+    pub transmit: f32,
+    pub hist_lo: u32,
+    pub hist_hi: u32,
+    pub cell: u32,
+    pub rank: u32,
+}
+
 pub const MODE_FULL: u32 = 0;
 pub const MODE_UPDATE: u32 = 1;
 pub const EMIT_DIRECTIONAL: u32 = 0;
@@ -87,13 +101,14 @@ pub const EMIT_POINT: u32 = 1;
 pub const EMIT_ENVIRONMENT: u32 = 2;
 /// `counters` words: retraced paths, changed records, recomputed segments, spatial 3×2, the
 /// most photons in one hash cell, listed segments; the dirty-cell bits follow.
-pub const COUNTER_WORDS: usize = 11;
+pub const COUNTER_WORDS: usize = 12;
 pub const COUNTER_RETRACED: usize = 0;
 pub const COUNTER_CHANGED: usize = 1;
 pub const COUNTER_SEGMENTS: usize = 2;
 pub const COUNTER_SPATIAL: usize = 3;
 pub const COUNTER_MAX_CELL: usize = 9;
-/// Segments `gather_mark` listed for the gather (must follow COUNTER_MAX_CELL: read together).
+/// Segments in the two halves of the gather list (two words; the first must follow
+/// COUNTER_MAX_CELL: they are read together).
 pub const COUNTER_LIST: usize = 10;
 /// `spatial` uniform: how segments learn of changed photons.
 pub const SPATIAL_NONE: u32 = 0;
@@ -129,6 +144,7 @@ pub struct PhotonBindings<'a> {
     pub grid_sorted: &'a wgpu::Buffer,
     pub segments: &'a wgpu::Buffer,
     pub gather_list: &'a wgpu::Buffer,
+    pub gather_state: &'a wgpu::Buffer,
     pub accum: &'a wgpu::Buffer,
     pub counters: &'a wgpu::Buffer,
 }
@@ -152,6 +168,7 @@ impl PhotonPass {
                 storage_entry(10, false),
                 storage_entry(11, false),
                 storage_entry(12, false),
+                storage_entry(13, false),
             ],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -206,6 +223,7 @@ impl PhotonPass {
             (10, b.accum),
             (11, b.counters),
             (12, b.gather_list),
+            (13, b.gather_state),
         ];
         let mut entries: Vec<wgpu::BindGroupEntry> = buffers
             .iter()

@@ -21,10 +21,11 @@ use std::time::{Duration, Instant};
 use voxlight_protocol::Light;
 
 use crate::passes::photon::{
-    COUNTER_CHANGED, COUNTER_MAX_CELL, COUNTER_RETRACED, COUNTER_SEGMENTS, COUNTER_SPATIAL,
-    COUNTER_WORDS, EMIT_DIRECTIONAL, EMIT_ENVIRONMENT, EMIT_POINT, MODE_FULL, MODE_UPDATE,
-    PhotonBindings, PhotonEmitter, PhotonPath, PhotonRecord, PhotonUniforms, SPATIAL_AXES,
-    SPATIAL_CELLS, SPATIAL_NONE, Segment, dispatch_linear, dispatch_single,
+    COUNTER_CHANGED, COUNTER_LIST, COUNTER_MAX_CELL, COUNTER_RETRACED, COUNTER_SEGMENTS,
+    COUNTER_SPATIAL, COUNTER_WORDS, EMIT_DIRECTIONAL, EMIT_ENVIRONMENT, EMIT_POINT, GatherState,
+    MODE_FULL, MODE_UPDATE, PhotonBindings, PhotonEmitter, PhotonPath, PhotonRecord,
+    PhotonUniforms, SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment, dispatch_linear,
+    dispatch_single,
 };
 use crate::scene_gpu::{SceneUniforms, default_step};
 use crate::technique::{StepReport, Technique, TechniqueStats};
@@ -50,10 +51,10 @@ pub struct PhotonParams {
     /// historygram covers only its samples' data values). Every choice keeps the update exact;
     /// they differ in how many segments they recompute.
     pub invalidation: Invalidation,
-    /// Photons per hash cell one gather dispatch visits; 0 sizes the chunks from the device's
-    /// loop limit (`Gpu::loop_limit`; one chunk where there is none). Full recomputes and
-    /// incremental updates chunk alike, so they stay bit-identical either way.
-    pub gather_chunk: u32,
+    /// Loop iterations (photons, cells, samples) one gather invocation runs per round before it
+    /// keeps its place for the next; 0 takes the device's loop limit (`Gpu::loop_limit`; one
+    /// round where there is none). The result does not depend on it.
+    pub gather_budget: u32,
 }
 
 /// How segments detect changed photons after a TF edit.
@@ -97,16 +98,16 @@ impl Default for PhotonParams {
             segments: 8,
             gather_step_voxels: 1.0,
             invalidation: Invalidation::DirtyCells,
-            gather_chunk: 0,
+            gather_budget: 0,
         }
     }
 }
 
-/// The photon ranks (within each hash cell) one gather dispatch visits.
+/// One gather round: which half of the segment list it reads, and its iteration budget.
 #[derive(Debug, Clone, Copy, Default)]
-struct GatherChunk {
-    first: u32,
-    count: u32,
+struct Round {
+    input: u32,
+    budget: u32,
 }
 
 /// What one incremental TF update did.
@@ -159,6 +160,8 @@ pub struct PhotonBudget {
     pub segment_bytes: u64,
     /// The segments one gather computes (indices), compacted by `gather_mark`.
     pub gather_list_bytes: u64,
+    /// Where each unfinished segment's gather stands between rounds.
+    pub gather_state_bytes: u64,
     pub accum_bytes: u64,
     /// Counters plus one dirty bit per grid cell.
     pub counter_bytes: u64,
@@ -208,7 +211,9 @@ impl PhotonBudget {
         // Sorted indices, then the scatter's scratch.
         let grid_sorted_bytes = 2 * records * 4;
         let segment_bytes = pixels * params.segments as u64 * size_of::<Segment>() as u64;
-        let gather_list_bytes = pixels * params.segments as u64 * 4;
+        // Two halves: a round's input and the segments left for the next.
+        let gather_list_bytes = 2 * pixels * params.segments as u64 * 4;
+        let gather_state_bytes = pixels * params.segments as u64 * size_of::<GatherState>() as u64;
         let accum_bytes = pixels * 16;
         let counter_bytes = (COUNTER_WORDS as u64 + cells.div_ceil(32)) * 4;
         let small = (TF_LUT_SIZE * 16
@@ -222,6 +227,7 @@ impl PhotonBudget {
             + grid_sorted_bytes
             + segment_bytes
             + gather_list_bytes
+            + gather_state_bytes
             + accum_bytes
             + small;
         Ok(Self {
@@ -236,6 +242,7 @@ impl PhotonBudget {
             grid_sorted_bytes,
             segment_bytes,
             gather_list_bytes,
+            gather_state_bytes,
             accum_bytes,
             counter_bytes,
             total,
@@ -255,6 +262,7 @@ impl PhotonBudget {
             self.grid_sorted_bytes,
             self.segment_bytes,
             self.gather_list_bytes,
+            self.gather_state_bytes,
             self.accum_bytes,
             self.counter_bytes,
         ]
@@ -308,8 +316,8 @@ pub struct Photon {
     capacity: u32,
     photons_traced: u64,
     last_update: Option<UpdateReport>,
-    /// Gather dispatches the last grid and gather took.
-    gather_chunks: u32,
+    /// Gather rounds the last grid and gather took.
+    gather_rounds: u32,
 }
 
 impl Photon {
@@ -366,6 +374,7 @@ impl Photon {
         );
         // Only the shaders use it; the bind group keeps it alive.
         let gather_list = buffer("photon gather list", budget.gather_list_bytes, U::STORAGE);
+        let gather_state = buffer("photon gather state", budget.gather_state_bytes, U::STORAGE);
         let accum = buffer("photon accum", budget.accum_bytes, U::STORAGE | U::COPY_SRC);
         let counters = buffer(
             "photon counters",
@@ -386,6 +395,7 @@ impl Photon {
                 grid_sorted: &grid_sorted,
                 segments: &segments,
                 gather_list: &gather_list,
+                gather_state: &gather_state,
                 accum: &accum,
                 counters: &counters,
             },
@@ -413,7 +423,7 @@ impl Photon {
             capacity,
             photons_traced: 0,
             last_update: None,
-            gather_chunks: 0,
+            gather_rounds: 0,
         };
         technique.write_tf(engine, scene);
         technique.write_emitters(engine, scene);
@@ -436,9 +446,9 @@ impl Photon {
         self.passes
     }
 
-    /// Gather dispatches (chunks of photon ranks) the last gather took.
-    pub fn gather_chunks(&self) -> u32 {
-        self.gather_chunks
+    /// Gather rounds (dispatches over the unfinished segments) the last gather took.
+    pub fn gather_rounds(&self) -> u32 {
+        self.gather_rounds
     }
 
     pub fn last_update(&self) -> Option<UpdateReport> {
@@ -483,7 +493,7 @@ impl Photon {
         mode: u32,
         trace_paths: std::ops::Range<u32>,
         query: u64,
-        chunk: GatherChunk,
+        round: Round,
     ) {
         let r = self.budget.radius;
         let path_count = self.passes * self.params.photons_per_pass;
@@ -508,8 +518,8 @@ impl Photon {
             query_hi: (query >> 32) as u32,
             emitter_count: self.emitter_count,
             spatial: self.params.invalidation.uniform(),
-            chunk_first: chunk.first,
-            chunk_count: chunk.count,
+            round_input: round.input,
+            round_budget: round.budget,
             pad0: 0,
             pad1: 0,
         };
@@ -546,7 +556,7 @@ impl Photon {
             mode,
             offset..offset + count,
             query,
-            GatherChunk::default(),
+            Round::default(),
         );
         let mut encoder = Self::encoder(engine, "photon trace");
         dispatch_linear(
@@ -561,7 +571,7 @@ impl Photon {
 
     /// Rebuilds the grid over every record, gathers segments (all in MODE_FULL, stale ones in
     /// MODE_UPDATE; `gather_mark` lists them so that the gather's SIMD lanes all work) in
-    /// chunks of photon ranks sized by the fullest cell, and composites.
+    /// rounds within the device's loop limit, and composites.
     fn grid_and_gather(
         &mut self,
         engine: &Engine,
@@ -569,7 +579,7 @@ impl Photon {
         mode: u32,
         query: u64,
     ) -> Result<(), EngineError> {
-        self.write_uniforms(engine, scene, mode, 0..0, query, GatherChunk::default());
+        self.write_uniforms(engine, scene, mode, 0..0, query, Round::default());
         let pass = &engine.photon;
         let bg = &self.bind_group;
         let mut encoder = Self::encoder(engine, "photon grid");
@@ -614,8 +624,7 @@ impl Photon {
             segments,
         );
         engine.gpu.queue.submit([encoder.finish()]);
-        let (fullest, listed) = self.fullest_cell_and_listed(engine)?;
-        let chunk = self.gather_chunk(engine);
+        let (fullest, mut listed) = self.fullest_cell_and_listed(engine)?;
         if let Some(limit) = engine.gpu.loop_limit() {
             // The grid sort ranks a record among its cell's records in one loop.
             if fullest >= limit / 2 {
@@ -627,30 +636,37 @@ impl Photon {
                 )));
             }
         }
-        let chunks = fullest.div_ceil(chunk).max(1);
-        self.gather_chunks = chunks;
-        for k in 0..chunks {
-            let last = k + 1 == chunks;
-            let chunk = GatherChunk {
-                first: k * chunk,
-                count: chunk,
-            };
-            self.write_uniforms(engine, scene, mode, 0..0, query, chunk);
+        let budget = self.round_budget(engine);
+        let mut rounds = 0;
+        let mut input = 0;
+        while listed > 0 {
+            let output = 1 - input;
+            self.write_uniforms(engine, scene, mode, 0..0, query, Round { input, budget });
+            engine.gpu.queue.write_buffer(
+                &self.counters,
+                (COUNTER_LIST as u64 + output as u64) * 4,
+                bytemuck::bytes_of(&0u32),
+            );
             let mut encoder = Self::encoder(engine, "photon gather");
-            if listed > 0 {
-                dispatch_linear(&mut encoder, "photon gather", &pass.gather, bg, listed);
-            }
-            if last {
-                dispatch_linear(
-                    &mut encoder,
-                    "photon composite",
-                    &pass.composite,
-                    bg,
-                    pixels,
-                );
-            }
+            dispatch_linear(&mut encoder, "photon gather", &pass.gather, bg, listed);
             engine.gpu.queue.submit([encoder.finish()]);
+            rounds += 1;
+            if budget == u32::MAX {
+                break;
+            }
+            listed = self.counter(engine, COUNTER_LIST + output as usize)?;
+            input = output;
         }
+        self.gather_rounds = rounds;
+        let mut encoder = Self::encoder(engine, "photon composite");
+        dispatch_linear(
+            &mut encoder,
+            "photon composite",
+            &pass.composite,
+            bg,
+            pixels,
+        );
+        engine.gpu.queue.submit([encoder.finish()]);
         Ok(())
     }
 
@@ -665,22 +681,24 @@ impl Photon {
         Ok((word(0), word(1)))
     }
 
-    /// Photons per hash cell that one gather dispatch may visit. A segment marches at most
-    /// `samples` samples; each visits the 27 cells (3 + 9 + 27 loop iterations) and up to
-    /// `chunk` photons in each, which must stay within the device's loop limit.
-    fn gather_chunk(&self, engine: &Engine) -> u32 {
-        if self.params.gather_chunk > 0 {
-            return self.params.gather_chunk;
+    /// One counter word (blocks on the GPU).
+    fn counter(&self, engine: &Engine, word: usize) -> Result<u32, EngineError> {
+        let bytes = engine
+            .gpu
+            .read_buffer_range(&self.counters, word as u64 * 4, 4)?;
+        Ok(bytemuck::pod_read_unaligned::<u32>(&bytes[..4]))
+    }
+
+    /// Loop iterations one gather invocation may run per round: the device's loop limit less
+    /// a tenth for the rest of the invocation, unbounded (one round) where there is none.
+    fn round_budget(&self, engine: &Engine) -> u32 {
+        if self.params.gather_budget > 0 {
+            return self.params.gather_budget;
         }
-        let Some(limit) = engine.gpu.loop_limit() else {
-            return u32::MAX;
-        };
-        let diagonal = self.volume.extent.iter().map(|e| e * e).sum::<f32>().sqrt();
-        let step = 2.0 * default_step(&self.volume) * self.params.gather_step_voxels;
-        let samples = (diagonal / self.params.segments as f32 / step).ceil() as u32 + 3;
-        // A tenth of the limit is left for the rest of the invocation.
-        let per_sample = (limit - limit / 10) / samples;
-        (per_sample.saturating_sub(40) / 27).max(1)
+        engine
+            .gpu
+            .loop_limit()
+            .map_or(u32::MAX, |limit| limit - limit / 10)
     }
 
     /// One progressive pass: more photons, then every segment gathered from all of them.
