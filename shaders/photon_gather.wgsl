@@ -9,9 +9,8 @@
 // (spatial historygram; without it, any changed photon). Listing them keeps every SIMD lane of
 // the gather busy (a sparse update would otherwise pay for whole idle batches).
 //
-// `gather` is one flat loop (one photon, one neighbour cell or one sample per iteration) that
-// stops after `round_budget` iterations and keeps its place in `gather_state`; the host runs
-// rounds over the segments still listed until none is left. The sums are formed in the same
+// `gather` counts its loop iterations and, after `round_budget` of them, keeps its place in
+// `gather_state`; the host runs rounds over the segments still listed until none is left. The sums are formed in the same
 // order whatever the budget, so the result does not depend on it: llvmpipe silently ends an
 // invocation's loops after 65535 iterations in all, and dense cells exceed that.
 // `composite` multiplies the segments front to back.
@@ -126,9 +125,15 @@ fn gather_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
 }
 
 // GatherState.cell: 0..26 = the neighbour cell being visited (dz, dy, dx from −1, dx fastest),
-// SAMPLE_DONE = the sample's photons are summed, NEXT_SAMPLE = take the next lattice sample.
-const SAMPLE_DONE: u32 = 27u;
+// NEXT_SAMPLE = take the next lattice sample.
 const NEXT_SAMPLE: u32 = 28u;
+
+// Keeps the segment's place for the next round and lists it there.
+fn defer_segment(id: u32, st: GatherState, segment_count: u32) {
+    gather_state[id] = st;
+    let next = 1u - photon.round_input;
+    gather_list[next * segment_count + atomicAdd(&counters[COUNTER_LIST + next], 1u)] = id;
+}
 
 @compute @workgroup_size(64)
 fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
@@ -147,76 +152,82 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
     let step = photon.gather_step;
     let r2 = photon.radius * photon.radius;
     let dims = vec3<i32>(photon.grid_dims);
+    let budget = photon.round_budget;
     var st = gather_state[id];
+    // This invocation's loop iterations; each loop counts its own so that the sum stays
+    // within the budget whatever the nesting.
+    var used = 0u;
     // The current sample (recomputed when resuming inside one).
     var x = scene.eye + dir * (hit.x + (st.k + jitter) * step);
     var sigma = 0.0;
+    var centre = grid_cell3(x);
     if (st.cell < NEXT_SAMPLE) {
         sigma = classify(data_at(x)).a * scene.density_scale;
     }
-    var centre = grid_cell3(x);
-    var iterations = 0u;
     loop {
-        if (iterations >= photon.round_budget) {
-            gather_state[id] = st;
-            let next = 1u - photon.round_input;
-            gather_list[next * segment_count + atomicAdd(&counters[COUNTER_LIST + next], 1u)] = id;
+        if (used >= budget) {
+            defer_segment(id, st, segment_count);
             return;
         }
-        iterations += 1u;
-        if (st.cell < SAMPLE_DONE) {
-            let offset = vec3<i32>(i32(st.cell % 3u), i32(st.cell / 3u % 3u), i32(st.cell / 9u)) - 1;
-            let n = centre + offset;
+        used += 1u;
+        if (st.cell == NEXT_SAMPLE) {
+            let t = hit.x + (st.k + jitter) * step;
+            if (t < bounds.x) {
+                st.k += 1.0;
+                continue;
+            }
+            if (t >= bounds.y || st.transmit < SEGMENT_T_CUTOFF) {
+                break;
+            }
+            x = scene.eye + dir * t;
+            let v = data_at(x);
+            let bit = hist_bit(v);
+            st.hist_lo |= bit.x;
+            st.hist_hi |= bit.y;
+            sigma = classify(v).a * scene.density_scale;
+            if (sigma <= 0.0) {
+                st.k += 1.0;
+                continue;
+            }
+            centre = grid_cell3(x);
+            st.cell = 0u;
+            st.rank = 0u;
+        }
+        for (; st.cell < 27u; st.cell++) {
+            used += 1u;
+            let n = centre + vec3<i32>(i32(st.cell % 3u), i32(st.cell / 3u % 3u), i32(st.cell / 9u)) - 1;
             if (any(n < vec3<i32>(0)) || any(n >= dims)) {
-                st.cell += 1u;
                 continue;
             }
             let cell = grid_index(n);
-            let i = atomicLoad(&grid_cells[cell]) + st.rank;
-            if (i < atomicLoad(&grid_cells[cell + 1u])) {
+            let first = atomicLoad(&grid_cells[cell]);
+            let end = atomicLoad(&grid_cells[cell + 1u]);
+            let start = first + st.rank;
+            // As many of the cell's photons as the budget allows (at least none).
+            // (budget may be u32::MAX: no overflowing sum.)
+            let stop = start + min(end - start, budget - min(used, budget));
+            for (var i = start; i < stop; i++) {
                 let rec = records[grid_sorted[i]];
                 let d = x - rec.position;
                 let d2 = dot(d, d);
                 if (d2 < r2) {
                     st.partial += rec.power * (phase_hg(dot(rec.direction, out_dir), scene.g) * (1.0 - d2 / r2));
                 }
-                st.rank += 1u;
-            } else {
-                st.cell += 1u;
-                st.rank = 0u;
             }
-            continue;
-        }
-        if (st.cell == SAMPLE_DONE) {
-            let w = (1.0 - exp(-sigma * step)) / sigma;
-            st.color += st.transmit * w * (st.partial * photon.kernel_norm);
-            st.transmit *= exp(-sigma * step);
-            st.partial = vec3<f32>(0.0);
-            st.k += 1.0;
-            st.cell = NEXT_SAMPLE;
-            continue;
-        }
-        let t = hit.x + (st.k + jitter) * step;
-        if (t < bounds.x) {
-            st.k += 1.0;
-            continue;
-        }
-        if (t >= bounds.y || st.transmit < SEGMENT_T_CUTOFF) {
-            break;
-        }
-        x = scene.eye + dir * t;
-        let v = data_at(x);
-        let bit = hist_bit(v);
-        st.hist_lo |= bit.x;
-        st.hist_hi |= bit.y;
-        sigma = classify(v).a * scene.density_scale;
-        if (sigma > 0.0) {
-            centre = grid_cell3(x);
-            st.cell = 0u;
+            used += stop - start;
+            if (stop < end) {
+                st.rank = stop - first;
+                defer_segment(id, st, segment_count);
+                return;
+            }
             st.rank = 0u;
-        } else {
-            st.k += 1.0;
         }
+        let w = (1.0 - exp(-sigma * step)) / sigma;
+        st.color += st.transmit * w * (st.partial * photon.kernel_norm);
+        st.transmit *= exp(-sigma * step);
+        st.partial = vec3<f32>(0.0);
+        st.k += 1.0;
+        st.cell = NEXT_SAMPLE;
     }
     segments[id] = Segment(st.color, st.transmit, st.hist_lo, st.hist_hi, 0u, 0u);
 }

@@ -689,16 +689,19 @@ impl Photon {
         Ok(bytemuck::pod_read_unaligned::<u32>(&bytes[..4]))
     }
 
-    /// Loop iterations one gather invocation may run per round: the device's loop limit less
-    /// a tenth for the rest of the invocation, unbounded (one round) where there is none.
+    /// Loop iterations one gather invocation may run per round, unbounded (one round) where
+    /// the device has no loop limit. llvmpipe counts its limit per batch of SIMD lanes run in
+    /// lockstep, and with nested loops a batch can run up to the sum of its lanes' counts; so
+    /// each lane gets its share of the limit, less a tenth for the rest of the invocation.
     fn round_budget(&self, engine: &Engine) -> u32 {
         if self.params.gather_budget > 0 {
             return self.params.gather_budget;
         }
+        let lanes = engine.gpu.info.subgroup_max_size.clamp(1, 64);
         engine
             .gpu
             .loop_limit()
-            .map_or(u32::MAX, |limit| limit - limit / 10)
+            .map_or(u32::MAX, |limit| (limit - limit / 10) / lanes)
     }
 
     /// One progressive pass: more photons, then every segment gathered from all of them.
