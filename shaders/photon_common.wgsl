@@ -39,8 +39,16 @@ struct PhotonUniforms {
     // and the loop iterations an invocation may run before it keeps its place for the next.
     round_input: u32,
     round_budget: u32,
+    // Only every round_stride-th invocation gathers (one per SIMD batch in the last rounds,
+    // so that one lane may take the whole budget).
+    round_stride: u32,
+    // Bins whose opacity changed (a subset of the query): all that a segment depends on
+    // directly; colour reaches it only through the photons.
+    opacity_query_lo: u32,
+    opacity_query_hi: u32,
     pad0: u32,
     pad1: u32,
+    pad2: u32,
 }
 
 // A stored photon interaction (a real collision): where, the direction it arrived from (travel
@@ -159,6 +167,10 @@ fn hist_bit(v: f32) -> vec2<u32> {
 
 fn hist_hits_query(lo: u32, hi: u32) -> bool {
     return ((lo & photon.query_lo) | (hi & photon.query_hi)) != 0u;
+}
+
+fn hist_hits_opacity_query(lo: u32, hi: u32) -> bool {
+    return ((lo & photon.opacity_query_lo) | (hi & photon.opacity_query_hi)) != 0u;
 }
 
 // Bits first..=last of a 64-bit mask as (lo, hi).

@@ -5,8 +5,9 @@
 // radiance (an Epanechnikov density estimate of the photons within `radius`, from the
 // 27-cell neighbourhood, in record order), its transmittance and the historygram of its
 // samples' data values. `gather_mark` lists the segments to compute: all in MODE_FULL; in
-// MODE_UPDATE those whose historygram meets the query or that a changed photon can reach
-// (spatial historygram; without it, any changed photon). Listing them keeps every SIMD lane of
+// MODE_UPDATE those whose historygram meets the opacity query (a colour edit reaches a segment
+// only through photons) or that a changed photon can reach (spatial historygram; without it,
+// any changed photon). Listing them keeps every SIMD lane of
 // the gather busy (a sparse update would otherwise pay for whole idle batches).
 //
 // `gather` counts its loop iterations and, after `round_budget` of them, keeps its place in
@@ -103,7 +104,7 @@ fn gather_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var stale = true;
     if (photon.mode == MODE_UPDATE) {
         let old = segments[id];
-        stale = hist_hits_query(old.hist_lo, old.hist_hi);
+        stale = hist_hits_opacity_query(old.hist_lo, old.hist_hi);
         if (!stale) {
             if (photon.spatial == SPATIAL_AXES) {
                 stale = spatial_hit(scene.eye + dir * bounds.x, scene.eye + dir * bounds.y);
@@ -137,9 +138,10 @@ fn defer_segment(id: u32, st: GatherState, segment_count: u32) {
 
 @compute @workgroup_size(64)
 fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let slot = linear_index(gid, groups);
+    let invocation = linear_index(gid, groups);
+    let slot = invocation / photon.round_stride;
     let segment_count = scene.width * scene.height * photon.segments;
-    if (slot >= atomicLoad(&counters[COUNTER_LIST + photon.round_input])) {
+    if (invocation % photon.round_stride != 0u || slot >= atomicLoad(&counters[COUNTER_LIST + photon.round_input])) {
         return;
     }
     let id = gather_list[photon.round_input * segment_count + slot];

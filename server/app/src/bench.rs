@@ -342,7 +342,7 @@ pub fn tf_edit(options: &TfEditBench) -> anyhow::Result<serde_json::Value> {
             let full_ms = started.elapsed().as_secs_f64() * 1000.0;
 
             let started = Instant::now();
-            let report = incremental.update_tf(&engine, &scene, query)?;
+            let report = incremental.update_tf(&engine, &scene, &base.tf)?;
             let incremental_ms = started.elapsed().as_secs_f64() * 1000.0;
 
             let a = incremental.read_state(&engine)?;
@@ -351,7 +351,7 @@ pub fn tf_edit(options: &TfEditBench) -> anyhow::Result<serde_json::Value> {
             let mut variant_rows = serde_json::Map::new();
             for other in &mut others {
                 let started = Instant::now();
-                let r = other.update_tf(&engine, &scene, query)?;
+                let r = other.update_tf(&engine, &scene, &base.tf)?;
                 let ms = started.elapsed().as_secs_f64() * 1000.0;
                 bit_exact &= other.read_state(&engine)? == b;
                 variant_rows.insert(

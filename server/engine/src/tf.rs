@@ -98,10 +98,26 @@ pub fn value_bin(v: f32) -> usize {
 /// between the two baked tables. Compares what the GPU actually uses, so an edit that leaves
 /// every LUT entry unchanged yields 0.
 pub fn query_historygram(old: &TransferFunction, new: &TransferFunction) -> u64 {
+    changed_bins(old, new, |x, y| x != y)
+}
+
+/// The bins whose opacity (extinction) changed: what a quantity that depends on the TF only
+/// through extinction, such as a view-ray segment's transmittance, needs to be recomputed for.
+/// A subset of `query_historygram`.
+pub fn opacity_query_historygram(old: &TransferFunction, new: &TransferFunction) -> u64 {
+    changed_bins(old, new, |x, y| x[3] != y[3])
+}
+
+/// Bins whose LUT entries `differ` between the two tables.
+fn changed_bins(
+    old: &TransferFunction,
+    new: &TransferFunction,
+    differ: impl Fn(&[f32; 4], &[f32; 4]) -> bool,
+) -> u64 {
     let (a, b) = (bake(old), bake(new));
     let mut mask = 0u64;
     for (i, (x, y)) in a.iter().zip(&b).enumerate() {
-        if x != y {
+        if differ(x, y) {
             // The shader interpolates between entries i and i + 1, so entry i influences the
             // values from (i − 1)/(N − 1) to (i + 1)/(N − 1).
             let lo = (i.saturating_sub(1)) as f32 / (TF_LUT_SIZE - 1) as f32;
@@ -171,6 +187,11 @@ mod tests {
         recoloured.points[3].color = [1.0, 0.0, 0.0];
         let mask = query_historygram(&base, &recoloured);
         assert_ne!(mask, 0);
+        assert_eq!(
+            opacity_query_historygram(&base, &recoloured),
+            0,
+            "colour only"
+        );
         assert_eq!(mask & 1, 0, "bin 0 (v < 1/63) did not change");
         assert_ne!(mask & (1 << 63), 0, "v = 1 changed");
         assert!(

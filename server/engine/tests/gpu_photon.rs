@@ -412,6 +412,18 @@ fn bench_sized_cornell_edit_is_bit_exact() {
         "{:?}",
         first_difference(&inc, &full)
     );
+    // The device's own round budget cuts nothing short: a far smaller one (many more rounds,
+    // far below any loop limit) gives the same bits.
+    let small = PhotonParams {
+        gather_budget: 1000,
+        ..p
+    };
+    let again = full_recompute(&volume, &s, small);
+    assert!(
+        first_difference(&again, &full).is_none(),
+        "{:?}",
+        first_difference(&again, &full)
+    );
 }
 
 /// A gather cut into many small rounds (what lavapipe's loop limit needs at larger sizes)

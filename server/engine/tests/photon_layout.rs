@@ -52,7 +52,8 @@ fn photon_structs_match_wgsl() {
             fields!(PhotonUniforms: grid_dims, cell_count, radius, kernel_norm, majorant,
                 gather_step, photons_per_pass, path_count, record_count, bounces, path_offset,
                 dispatch_paths, mode, segments, query_lo, query_hi, emitter_count, spatial,
-                round_input, round_budget, pad0, pad1),
+                round_input, round_budget, round_stride, opacity_query_lo, opacity_query_hi, pad0,
+                pad1, pad2),
         );
         assert_layout(
             &module,

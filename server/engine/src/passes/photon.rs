@@ -32,8 +32,12 @@ pub struct PhotonUniforms {
     pub spatial: u32,
     pub round_input: u32,
     pub round_budget: u32,
+    pub round_stride: u32,
+    pub opacity_query_lo: u32,
+    pub opacity_query_hi: u32,
     pub pad0: u32,
     pub pad1: u32,
+    pub pad2: u32,
 }
 
 /// Matches `PhotonRecord`: one stored photon interaction.

@@ -7,7 +7,8 @@
 //!
 //! A TF edit (`Change::Tf`) does not start over: paths whose historygram meets the query
 //! historygram are retraced from their last unaffected interaction, the grid is rebuilt, and
-//! only segments whose own historygram meets the query, or that a changed photon can reach
+//! only segments whose own historygram meets the bins whose opacity changed (colour reaches a
+//! segment only through the photons, which carry the albedo), or that a changed photon can reach
 //! (spatial historygram, 3×64 bits; or any change when that option is off), are gathered
 //! again. Because the random numbers of interaction k of path p depend only on (seed, p, k),
 //! the grid orders each cell by record index, and the gather of a segment depends only on its
@@ -18,7 +19,7 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use voxlight_protocol::Light;
+use voxlight_protocol::{Light, TransferFunction};
 
 use crate::passes::photon::{
     COUNTER_CHANGED, COUNTER_LIST, COUNTER_MAX_CELL, COUNTER_RETRACED, COUNTER_SEGMENTS,
@@ -29,7 +30,7 @@ use crate::passes::photon::{
 };
 use crate::scene_gpu::{SceneUniforms, default_step};
 use crate::technique::{StepReport, Technique, TechniqueStats};
-use crate::tf::{TF_LUT_SIZE, bake};
+use crate::tf::{TF_LUT_SIZE, bake, opacity_query_historygram, query_historygram};
 use crate::{Change, Engine, EngineError, GpuVolume, Scene};
 
 /// Parameters of the photon map (the paper's Pn, Sn, Vn and the gather radius).
@@ -103,12 +104,24 @@ impl Default for PhotonParams {
     }
 }
 
-/// One gather round: which half of the segment list it reads, and its iteration budget.
+/// One gather round: which half of the segment list it reads, its iteration budget per
+/// segment, and how many invocations per segment (all but the first idle).
 #[derive(Debug, Clone, Copy, Default)]
 struct Round {
     input: u32,
     budget: u32,
+    stride: u32,
 }
+
+/// The bins a TF edit changed (widened, see `update_tf`): any property, and opacity alone.
+#[derive(Debug, Clone, Copy, Default)]
+struct Query {
+    any: u64,
+    opacity: u64,
+}
+
+/// Segments few enough for a round with one gathering lane per SIMD batch.
+const TAIL_SEGMENTS: u32 = 4096;
 
 /// What one incremental TF update did.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -492,7 +505,7 @@ impl Photon {
         scene: &Scene,
         mode: u32,
         trace_paths: std::ops::Range<u32>,
-        query: u64,
+        query: Query,
         round: Round,
     ) {
         let r = self.budget.radius;
@@ -514,14 +527,18 @@ impl Photon {
             dispatch_paths: trace_paths.len() as u32,
             mode,
             segments: self.params.segments,
-            query_lo: query as u32,
-            query_hi: (query >> 32) as u32,
+            query_lo: query.any as u32,
+            query_hi: (query.any >> 32) as u32,
             emitter_count: self.emitter_count,
             spatial: self.params.invalidation.uniform(),
             round_input: round.input,
             round_budget: round.budget,
+            round_stride: round.stride.max(1),
+            opacity_query_lo: query.opacity as u32,
+            opacity_query_hi: (query.opacity >> 32) as u32,
             pad0: 0,
             pad1: 0,
+            pad2: 0,
         };
         engine
             .gpu
@@ -545,7 +562,7 @@ impl Photon {
         mode: u32,
         offset: u32,
         count: u32,
-        query: u64,
+        query: Query,
     ) {
         if count == 0 {
             return;
@@ -577,7 +594,7 @@ impl Photon {
         engine: &Engine,
         scene: &Scene,
         mode: u32,
-        query: u64,
+        query: Query,
     ) -> Result<(), EngineError> {
         self.write_uniforms(engine, scene, mode, 0..0, query, Round::default());
         let pass = &engine.photon;
@@ -636,19 +653,38 @@ impl Photon {
                 )));
             }
         }
-        let budget = self.round_budget(engine);
+        let lane_budget = self.round_budget(engine);
+        let lanes = engine.gpu.info.subgroup_max_size.clamp(1, 64);
         let mut rounds = 0;
         let mut input = 0;
         while listed > 0 {
             let output = 1 - input;
-            self.write_uniforms(engine, scene, mode, 0..0, query, Round { input, budget });
+            // The last, heaviest segments: one lane per SIMD batch, with the batch's budget.
+            let stride = if lane_budget < u32::MAX && listed <= TAIL_SEGMENTS {
+                lanes
+            } else {
+                1
+            };
+            let budget = lane_budget.saturating_mul(stride);
+            let round = Round {
+                input,
+                budget,
+                stride,
+            };
+            self.write_uniforms(engine, scene, mode, 0..0, query, round);
             engine.gpu.queue.write_buffer(
                 &self.counters,
                 (COUNTER_LIST as u64 + output as u64) * 4,
                 bytemuck::bytes_of(&0u32),
             );
             let mut encoder = Self::encoder(engine, "photon gather");
-            dispatch_linear(&mut encoder, "photon gather", &pass.gather, bg, listed);
+            dispatch_linear(
+                &mut encoder,
+                "photon gather",
+                &pass.gather,
+                bg,
+                listed * stride,
+            );
             engine.gpu.queue.submit([encoder.finish()]);
             rounds += 1;
             if budget == u32::MAX {
@@ -710,8 +746,8 @@ impl Photon {
         let offset = self.passes * p;
         self.passes += 1;
         self.write_scene(engine, scene)?;
-        self.trace(engine, scene, MODE_FULL, offset, p, 0);
-        self.grid_and_gather(engine, scene, MODE_FULL, 0)?;
+        self.trace(engine, scene, MODE_FULL, offset, p, Query::default());
+        self.grid_and_gather(engine, scene, MODE_FULL, Query::default())?;
         self.photons_traced += p as u64;
         Ok(())
     }
@@ -729,19 +765,21 @@ impl Photon {
         self.write_emitters(engine, scene);
         self.write_scene(engine, scene)?;
         let paths = self.passes * self.params.photons_per_pass;
-        self.trace(engine, scene, MODE_FULL, 0, paths, 0);
-        self.grid_and_gather(engine, scene, MODE_FULL, 0)?;
+        self.trace(engine, scene, MODE_FULL, 0, paths, Query::default());
+        self.grid_and_gather(engine, scene, MODE_FULL, Query::default())?;
         self.photons_traced += paths as u64;
         engine.gpu.wait_idle()
     }
 
-    /// The incremental update after a TF edit (`scene` holds the new TF). Blocks until done.
+    /// The incremental update after a TF edit from `old_tf` (`scene` holds the new TF).
+    /// Blocks until done.
     pub fn update_tf(
         &mut self,
         engine: &Engine,
         scene: &Scene,
-        query_historygram: u64,
+        old_tf: &TransferFunction,
     ) -> Result<UpdateReport, EngineError> {
+        let query_historygram = query_historygram(old_tf, &scene.tf);
         self.write_tf(engine, scene);
         let paths = self.passes * self.params.photons_per_pass;
         let segments = self.width as u64 * self.height as u64 * self.params.segments as u64;
@@ -756,7 +794,11 @@ impl Photon {
         }
         // Interpolation between LUT entries can reach one bin further than the query's own
         // rounding; widening it by one bin on each side keeps the update exact at the edges.
-        let query = query_historygram | (query_historygram << 1) | (query_historygram >> 1);
+        let widen = |q: u64| q | (q << 1) | (q >> 1);
+        let query = Query {
+            any: widen(query_historygram),
+            opacity: widen(opacity_query_historygram(old_tf, &scene.tf)),
+        };
         engine.gpu.queue.write_buffer(
             &self.counters,
             0,
@@ -901,16 +943,14 @@ impl Technique for Photon {
         change: &Change,
     ) -> Result<(), EngineError> {
         match change {
-            Change::Tf {
-                query_historygram, ..
-            } => {
-                self.update_tf(engine, scene, *query_historygram)?;
+            Change::Tf { old, .. } => {
+                self.update_tf(engine, scene, old)?;
             }
             Change::Camera => {
                 // Photons do not depend on the camera: gather again.
                 if self.passes > 0 {
                     self.write_scene(engine, scene)?;
-                    self.grid_and_gather(engine, scene, MODE_FULL, 0)?;
+                    self.grid_and_gather(engine, scene, MODE_FULL, Query::default())?;
                 }
             }
             Change::Lights | Change::Params => {
