@@ -201,6 +201,13 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
             if (any(n < vec3<i32>(0)) || any(n >= dims)) {
                 continue;
             }
+            // A neighbour farther than the radius holds no photon that contributes (about a
+            // quarter of the 27 for a uniformly placed sample).
+            let cell_min = scene.box_min + vec3<f32>(n) * photon.radius;
+            let gap = max(max(cell_min - x, x - (cell_min + photon.radius)), vec3<f32>(0.0));
+            if (dot(gap, gap) >= r2) {
+                continue;
+            }
             let cell = grid_index(n);
             let first = atomicLoad(&grid_cells[cell]);
             let end = atomicLoad(&grid_cells[cell + 1u]);

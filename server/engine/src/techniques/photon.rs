@@ -120,9 +120,6 @@ struct Query {
     opacity: u64,
 }
 
-/// Segments few enough for a round with one gathering lane per SIMD batch.
-const TAIL_SEGMENTS: u32 = 4096;
-
 /// What one incremental TF update did.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct UpdateReport {
@@ -659,9 +656,10 @@ impl Photon {
         let mut input = 0;
         while listed > 0 {
             let output = 1 - input;
-            // The last, heaviest segments: one lane per SIMD batch, with the batch's budget.
-            let stride = if lane_budget < u32::MAX && listed <= TAIL_SEGMENTS {
-                lanes
+            // The segments left after a round are the heaviest: each further round gives them
+            // twice the budget on half as many lanes per SIMD batch, down to one lane.
+            let stride = if lane_budget < u32::MAX {
+                (1u32 << rounds.min(6)).min(lanes)
             } else {
                 1
             };
