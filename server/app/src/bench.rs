@@ -90,6 +90,8 @@ pub struct TfEditBench<'a> {
     pub passes: u32,
     pub bounces: u32,
     pub segments: u32,
+    /// Timed repetitions of each edit; the medians are reported.
+    pub repeats: u32,
 }
 
 /// One TF edit of a scenario: a name and the edited TF.
@@ -332,18 +334,21 @@ pub fn tf_edit(options: &TfEditBench) -> anyhow::Result<serde_json::Value> {
                 ..base.clone()
             };
             let query = voxlight_engine::tf::query_historygram(&base.tf, &scene.tf);
-            incremental.recompute(&engine, &base, options.passes)?;
+            let (mut full_times, mut incremental_times) = (Vec::new(), Vec::new());
+            let mut report = Default::default();
+            for _ in 0..options.repeats {
+                incremental.recompute(&engine, &base, options.passes)?;
+                let started = Instant::now();
+                full.recompute(&engine, &scene, options.passes)?;
+                full_times.push(started.elapsed().as_secs_f64() * 1000.0);
+                let started = Instant::now();
+                report = incremental.update_tf(&engine, &scene, &base.tf)?;
+                incremental_times.push(started.elapsed().as_secs_f64() * 1000.0);
+            }
+            let (full_ms, incremental_ms) = (median(full_times), median(incremental_times));
             for other in &mut others {
                 other.recompute(&engine, &base, options.passes)?;
             }
-
-            let started = Instant::now();
-            full.recompute(&engine, &scene, options.passes)?;
-            let full_ms = started.elapsed().as_secs_f64() * 1000.0;
-
-            let started = Instant::now();
-            let report = incremental.update_tf(&engine, &scene, &base.tf)?;
-            let incremental_ms = started.elapsed().as_secs_f64() * 1000.0;
 
             let a = incremental.read_state(&engine)?;
             let b = full.read_state(&engine)?;
@@ -410,7 +415,18 @@ pub fn tf_edit(options: &TfEditBench) -> anyhow::Result<serde_json::Value> {
         "passes": options.passes,
         "bounces": options.bounces,
         "segments": options.segments,
+        "repeats": options.repeats,
         "invalidation": params.invalidation.name(),
         "scenarios": rows,
     }))
+}
+
+/// The median of some timings (the mean of the middle two for an even count).
+fn median(mut values: Vec<f64>) -> f64 {
+    values.sort_by(f64::total_cmp);
+    match values.len() {
+        0 => f64::NAN,
+        n if n % 2 == 1 => values[n / 2],
+        n => 0.5 * (values[n / 2 - 1] + values[n / 2]),
+    }
 }

@@ -126,6 +126,9 @@ enum Command {
         /// `tf-edit`: view-ray segments per pixel.
         #[arg(long, default_value_t = 8)]
         segments: u32,
+        /// `tf-edit`: timed repetitions of each edit (the median is reported).
+        #[arg(long, default_value_t = 3)]
+        repeats: u32,
         /// Print one JSON object on the last line.
         #[arg(long)]
         json: bool,
@@ -262,6 +265,7 @@ fn run() -> anyhow::Result<()> {
             passes,
             bounces,
             segments,
+            repeats,
             json,
             data,
             sizes,
@@ -287,6 +291,7 @@ fn run() -> anyhow::Result<()> {
                     passes: passes.max(1),
                     bounces: bounces.max(1),
                     segments: segments.max(1),
+                    repeats: repeats.max(1),
                 })?,
                 "manylight" => bench_manylight::manylight(&bench_manylight::ManylightBench {
                     data_dir: data.as_deref(),

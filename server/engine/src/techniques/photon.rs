@@ -125,6 +125,8 @@ struct Query {
 pub struct UpdateReport {
     pub paths: u64,
     pub paths_retraced: u64,
+    /// Records that differ from before (all of them when the edit touched every bin and the
+    /// map was recomputed without comparing).
     pub records_changed: u64,
     pub segments: u64,
     pub segments_recomputed: u64,
@@ -797,6 +799,21 @@ impl Photon {
             any: widen(query_historygram),
             opacity: widen(opacity_query_historygram(old_tf, &scene.tf)),
         };
+        if query.any == u64::MAX {
+            // Every bin changed: every path would be retraced from its start and most segments
+            // gathered again; the full recompute is that work without the checks.
+            self.recompute(engine, scene, self.passes)?;
+            let report = UpdateReport {
+                paths: paths as u64,
+                paths_retraced: paths as u64,
+                records_changed: paths as u64 * self.params.bounces as u64,
+                segments,
+                segments_recomputed: segments,
+                spatial: [u64::MAX; 3],
+            };
+            self.last_update = Some(report);
+            return Ok(report);
+        }
         engine.gpu.queue.write_buffer(
             &self.counters,
             0,
