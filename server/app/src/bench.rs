@@ -336,14 +336,19 @@ pub fn tf_edit(options: &TfEditBench) -> anyhow::Result<serde_json::Value> {
             let query = voxlight_engine::tf::query_historygram(&base.tf, &scene.tf);
             let (mut full_times, mut incremental_times) = (Vec::new(), Vec::new());
             let mut report = Default::default();
-            for _ in 0..options.repeats {
+            for repeat in 0..options.repeats {
                 incremental.recompute(&engine, &base, options.passes)?;
-                let started = Instant::now();
-                full.recompute(&engine, &scene, options.passes)?;
-                full_times.push(started.elapsed().as_secs_f64() * 1000.0);
-                let started = Instant::now();
-                report = incremental.update_tf(&engine, &scene, &base.tf)?;
-                incremental_times.push(started.elapsed().as_secs_f64() * 1000.0);
+                // Alternate which runs first, so that neither always finds the caches warm.
+                for run_full in [repeat % 2 == 0, repeat % 2 == 1] {
+                    let started = Instant::now();
+                    if run_full {
+                        full.recompute(&engine, &scene, options.passes)?;
+                        full_times.push(started.elapsed().as_secs_f64() * 1000.0);
+                    } else {
+                        report = incremental.update_tf(&engine, &scene, &base.tf)?;
+                        incremental_times.push(started.elapsed().as_secs_f64() * 1000.0);
+                    }
+                }
             }
             let (full_ms, incremental_ms) = (median(full_times), median(incremental_times));
             for other in &mut others {

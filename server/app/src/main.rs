@@ -127,7 +127,7 @@ enum Command {
         #[arg(long, default_value_t = 8)]
         segments: u32,
         /// `tf-edit`: timed repetitions of each edit (the median is reported).
-        #[arg(long, default_value_t = 3)]
+        #[arg(long, default_value_t = 5)]
         repeats: u32,
         /// Print one JSON object on the last line.
         #[arg(long)]
