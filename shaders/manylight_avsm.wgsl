@@ -12,6 +12,10 @@
 @group(0) @binding(6) var<uniform> ml: ManylightParams;
 @group(0) @binding(7) var<storage, read_write> vls: array<VirtualLight>;
 @group(0) @binding(8) var<storage, read_write> avsm: array<u32>;
+@group(0) @binding(12) var<storage, read> work_list: array<u32>;
+// Per light, the data bins of every macrocell its map's rays crossed (lo, hi): the map can
+// change only under a TF edit whose opacity query meets them.
+@group(0) @binding(13) var<storage, read_write> avsm_hist: array<atomic<u32>>;
 
 // Build step in view steps: shadow maps are low frequency (the paper uses 40–48² texels).
 const BUILD_STEP_SCALE: f32 = 2.0;
@@ -52,7 +56,13 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let face = gid.y / r;
     let row = gid.y % r;
-    let vl_index = gid.z;
+    var vl_index = gid.z;
+    if (ml.list_count > 0u) {
+        if (gid.z >= ml.list_count) {
+            return;
+        }
+        vl_index = work_list[gid.z];
+    }
     if (vl_index >= ml.count) {
         return;
     }
@@ -75,6 +85,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     var tau = 0.0;
     var last_t = 1.0;
     var k = 0.0;
+    var bins = vec2<u32>(0u);
     loop {
         let t = (k + 0.5) * step;
         if (t >= t_end || last_t < 1e-4) {
@@ -83,10 +94,14 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         let x = p + dir * t;
         let cell = cell_of(box_relative(x));
         if (cell_is_empty(cell)) {
+            // Every value the skipped cell holds: a TF edit can make it non-empty.
+            bins |= cell_bin_bits(cell);
             k = skip_empty_cell(p, dir, cell, 0.0, step, 0.5, k);
             continue;
         }
-        let sigma = medium_at(x).a;
+        let v = sample_volume(box_relative(x));
+        bins |= value_bin_bits(v);
+        let sigma = classify(v).a * scene.density_scale;
         if (sigma > 0.0) {
             // The curve is flat up to the start of this step: keep its corner.
             if (tau == 0.0 || nodes[count - 1u].x < t - 0.5 * step - 1e-6) {
@@ -98,6 +113,8 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
         k += 1.0;
     }
+    atomicOr(&avsm_hist[2u * vl_index], bins.x);
+    atomicOr(&avsm_hist[2u * vl_index + 1u], bins.y);
     // Pad with the final value far away.
     let final_t = exp(-tau);
     for (var i = 0u; i < ml.nodes; i++) {

@@ -22,7 +22,10 @@ struct ManylightParams {
     built_density: f32,
     // 1 / light paths traced: a virtual light's power is its path's share of the emission.
     power_scale: f32,
-    pad0: f32,
+    // When non-zero, the light tracing traces the paths work_list[0..list_count] and the
+    // shadow-map build builds the maps of the slots work_list[0..list_count] (a TF edit's
+    // partial rebuild); when zero, paths first_path.. and every slot.
+    list_count: u32,
 }
 
 const MODE_AVSM_POINT: u32 = 0u;
@@ -37,13 +40,39 @@ const MAX_NODES: u32 = 12u;
 // `tau` is the optical depth of its path from the light per unit density scale, `vertices` the
 // scattering events on that path including this one: together they re-weight the light
 // exactly when only the density scale changes (the paper's Eq. 6 with fixed positions).
+// `path` is the light path it belongs to. The path's historygrams (the same in each of its
+// lights, and in slot 0 of a path that left none): `opacity_*` the data bins of every
+// macrocell its flights crossed (majorants, tentative collisions, optical depth), `colour_*`
+// the bins at its scattering vertices (albedo, and with it the roulette). A TF edit changes
+// the path only if its opacity query meets the first or its query meets the second.
 struct VirtualLight {
     position: vec3<f32>,
     tau: f32,
     power: vec3<f32>,
     vertices: f32,
     direction: vec3<f32>,
-    pad0: f32,
+    path: u32,
+    opacity_lo: u32,
+    opacity_hi: u32,
+    colour_lo: u32,
+    colour_hi: u32,
+}
+
+// Historygram bit (lo, hi words) of data value v: bin floor(v·63) of 64.
+fn value_bin_bits(v: f32) -> vec2<u32> {
+    let bin = min(u32(clamp(v, 0.0, 1.0) * 63.0), 63u);
+    if (bin < 32u) {
+        return vec2<u32>(1u << bin, 0u);
+    }
+    return vec2<u32>(0u, 1u << (bin - 32u));
+}
+
+// Data bins per macrocell (lo, hi words; RangeGrid::bin_masks), shared by the passes.
+@group(0) @binding(11) var<storage, read> cell_bins: array<vec2<u32>>;
+
+// Data bins of macrocell c.
+fn cell_bin_bits(c: vec3<u32>) -> vec2<u32> {
+    return cell_bins[(c.z * scene.cell_dims.y + c.y) * scene.cell_dims.x + c.x];
 }
 
 // Power of virtual light `vl` at density scale `density` when traced at `built`:

@@ -1,12 +1,14 @@
 // Technique `manylight`, pass 1: virtual lights. One invocation per light path (Weber et al.
 // 2013, §3.1): a light chosen by power, an emitted ray (directional: a disk covering the
 // volume's bounding sphere; point: a uniform direction; environment: an inward cosine-weighted
-// ray from the bounding sphere), then delta tracking to each real collision, where a virtual
+// ray from the bounding sphere), then delta tracking (fixed majorant) to each real collision, where a virtual
 // light is stored with the path's power × albedo (before the 1/paths normalisation, which
 // the gather applies), Russian roulette on the throughput, and Henyey-Greenstein scattering.
 // Each path writes `max_bounces` slots of a batch's scratch buffer (unused ones with zero
 // power); the CPU keeps whole paths in order until N virtual lights are stored, so the set is
-// the same on every run ("spawn paths until N virtual lights").
+// the same on every run ("spawn paths until N virtual lights"). Each path also records its
+// historygrams (VirtualLight), so that a TF edit retraces only the paths it can change; with
+// a work list, exactly those paths are traced again (the same random numbers per path).
 // Rust twin: server/engine/src/passes/manylight.rs.
 
 @group(0) @binding(0) var<uniform> scene: SceneUniforms;
@@ -16,6 +18,35 @@
 @group(0) @binding(5) var<storage, read> cell_max_opacity: array<f32>;
 @group(0) @binding(6) var<uniform> ml: ManylightParams;
 @group(0) @binding(10) var<storage, read_write> scratch: array<VirtualLight>;
+@group(0) @binding(12) var<storage, read> work_list: array<u32>;
+
+// The data bins of every value this path's flights read (tentative collisions and the
+// optical-depth march).
+var<private> opacity_bins: vec2<u32>;
+
+// Delta tracking against the fixed majorant density_scale · 1 (opacity ≤ 1): unlike the
+// macrocell majorants (tracking.wgsl), it does not depend on the TF, so the path depends on
+// the TF only through the values it reads, which opacity_bins records. (A few more null
+// collisions per path; light paths are few.)
+fn delta_track_fixed(origin: vec3<f32>, dir: vec3<f32>, t0: f32, t1: f32, rng: ptr<function, Rng>) -> vec2<f32> {
+    let majorant = scene.density_scale;
+    if (majorant <= 0.0) {
+        return vec2<f32>(t1, 0.0);
+    }
+    var t = t0;
+    loop {
+        t += -log(1.0 - rng_next(rng)) / majorant;
+        if (t >= t1) {
+            return vec2<f32>(t1, 0.0);
+        }
+        let v = sample_volume(box_relative(origin + dir * t));
+        opacity_bins |= value_bin_bits(v);
+        if (rng_next(rng) * majorant < classify(v).a * scene.density_scale) {
+            return vec2<f32>(t, 1.0);
+        }
+    }
+    return vec2<f32>(t1, 0.0);
+}
 
 fn uniform_direction(u1: f32, u2: f32) -> vec3<f32> {
     let z = 1.0 - 2.0 * u1;
@@ -31,14 +62,18 @@ fn unit_optical_depth(origin: vec3<f32>, dir: vec3<f32>, t0: f32, t1: f32) -> f3
     let full = u32(max(0.0, floor((t1 - t0) / step)));
     var tau = 0.0;
     for (var k = 0u; k < full; k++) {
-        tau += classify(sample_volume(box_relative(origin + dir * (t0 + (f32(k) + 0.5) * step)))).a;
+        let v = sample_volume(box_relative(origin + dir * (t0 + (f32(k) + 0.5) * step)));
+        opacity_bins |= value_bin_bits(v);
+        tau += classify(v).a;
     }
     tau *= step;
     // The last partial step.
     let covered = f32(full) * step;
     let rest = t1 - t0 - covered;
     if (rest > 0.0) {
-        tau += classify(sample_volume(box_relative(origin + dir * (t0 + covered + 0.5 * rest)))).a * rest;
+        let v = sample_volume(box_relative(origin + dir * (t0 + covered + 0.5 * rest)));
+        opacity_bins |= value_bin_bits(v);
+        tau += classify(v).a * rest;
     }
     return tau;
 }
@@ -49,7 +84,15 @@ fn luminance(c: vec3<f32>) -> f32 {
 
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let path = ml.first_path + gid.x;
+    var path = ml.first_path + gid.x;
+    if (ml.list_count > 0u) {
+        if (gid.x >= ml.list_count) {
+            return;
+        }
+        path = work_list[gid.x];
+    }
+    opacity_bins = vec2<u32>(0u);
+    var colour_bins = vec2<u32>(0u);
     var rng = rng_new(ml.seed, path, 0x7f4a7c15u);
     let center = 0.5 * (scene.box_min + scene.box_max);
     let radius = 0.5 * length(scene.box_max - scene.box_min);
@@ -109,20 +152,21 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let start = max(weight.x, max(weight.y, weight.z));
     var alive = start > 0.0;
     for (var k = 0u; k < ml.max_bounces; k++) {
-        var vl = VirtualLight(vec3<f32>(0.0), 0.0, vec3<f32>(0.0), 0.0, dir, 0.0);
+        var vl = VirtualLight(vec3<f32>(0.0), 0.0, vec3<f32>(0.0), 0.0, dir, path, 0u, 0u, 0u, 0u);
         if (alive) {
             let hit = intersect_box(origin, dir, scene.box_min, scene.box_max);
             var event = vec2<f32>(0.0, 0.0);
             if (hit.x < hit.y) {
-                event = delta_track(origin, dir, max(hit.x, 0.0), hit.y, &rng);
+                event = delta_track_fixed(origin, dir, max(hit.x, 0.0), hit.y, &rng);
             }
             if (event.y == 0.0) {
                 alive = false;
             } else {
                 let p = origin + dir * event.x;
                 weight *= medium_at(p).rgb;
+                colour_bins |= value_bin_bits(sample_volume(box_relative(p)));
                 tau += unit_optical_depth(origin, dir, max(hit.x, 0.0), event.x);
-                vl = VirtualLight(p, tau, weight, f32(k + 1u), dir, 0.0);
+                vl = VirtualLight(p, tau, weight, f32(k + 1u), dir, path, 0u, 0u, 0u, 0u);
                 // Roulette on the throughput relative to the emitted power.
                 let survive = min(1.0, max(weight.x, max(weight.y, weight.z)) / start);
                 if (rng_next(&rng) >= survive) {
@@ -137,5 +181,12 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             }
         }
         scratch[gid.x * ml.max_bounces + k] = vl;
+    }
+    for (var k = 0u; k < ml.max_bounces; k++) {
+        let slot = gid.x * ml.max_bounces + k;
+        scratch[slot].opacity_lo = opacity_bins.x;
+        scratch[slot].opacity_hi = opacity_bins.y;
+        scratch[slot].colour_lo = colour_bins.x;
+        scratch[slot].colour_hi = colour_bins.y;
     }
 }

@@ -5,7 +5,7 @@
 
 use voxlight_volumes::Volume;
 
-use crate::tf::TF_LUT_SIZE;
+use crate::tf::{TF_LUT_SIZE, value_bin};
 
 /// Edge of a macrocell in voxels (`CELL_VOXELS` in the shaders' uniforms).
 pub const CELL: u32 = 8;
@@ -86,6 +86,23 @@ impl RangeGrid {
                 let first = ((lo as f32 / 65535.0 * last) as usize).saturating_sub(1);
                 let end = ((hi as f32 / 65535.0 * last) as usize + 2).min(TF_LUT_SIZE - 1);
                 range_max.query(first, end)
+            })
+            .collect()
+    }
+
+    /// Per cell, the historygram bins (as `tf::query_historygram` numbers them) of every LUT
+    /// entry its largest opacity reads: a quantity that depended on a cell's majorant, or on
+    /// any sample in it, can only change under a TF edit whose query meets these bins.
+    pub fn bin_masks(&self) -> Vec<u64> {
+        let last = (TF_LUT_SIZE - 1) as f32;
+        self.min
+            .iter()
+            .zip(&self.max)
+            .map(|(&lo, &hi)| {
+                let first = ((lo as f32 / 65535.0 * last) as usize).saturating_sub(1);
+                let end = ((hi as f32 / 65535.0 * last) as usize + 2).min(TF_LUT_SIZE - 1);
+                let (a, b) = (value_bin(first as f32 / last), value_bin(end as f32 / last));
+                (a..=b).fold(0u64, |mask, bin| mask | 1 << bin)
             })
             .collect()
     }

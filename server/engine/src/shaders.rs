@@ -40,7 +40,6 @@ pub fn manylight_vls() -> String {
         VOLUME,
         SCENE,
         MACROCELL,
-        TRACKING,
         MANYLIGHT_COMMON,
         MANYLIGHT_VLS,
     ]

@@ -124,12 +124,13 @@ fn rust_and_wgsl_layouts_agree() {
         "ManylightParams",
         size_of::<ManylightParams>(),
         fields!(ManylightParams: capacity, count, first_path, max_bounces, face_res, nodes, mode, seed,
-            vsl_radius, built_density, power_scale, pad0),
+            vsl_radius, built_density, power_scale, list_count),
     );
     assert_layout(
         &gather,
         "VirtualLight",
         size_of::<VirtualLight>(),
-        fields!(VirtualLight: position, tau, power, vertices, direction, pad0),
+        fields!(VirtualLight: position, tau, power, vertices, direction, path, opacity_lo,
+            opacity_hi, colour_lo, colour_hi),
     );
 }

@@ -24,7 +24,7 @@ pub struct ManylightParams {
     pub vsl_radius: f32,
     pub built_density: f32,
     pub power_scale: f32,
-    pub pad0: f32,
+    pub list_count: u32,
 }
 
 /// Matches `VirtualLight` in manylight_common.wgsl.
@@ -38,7 +38,27 @@ pub struct VirtualLight {
     /// Scattering events on its path, this one included.
     pub vertices: f32,
     pub direction: [f32; 3],
-    pub pad0: f32,
+    /// The light path it belongs to (`u32::MAX`: an empty slot).
+    pub path: u32,
+    /// The path's historygrams: bins of the macrocells it crossed, and at its vertices.
+    pub opacity_lo: u32,
+    pub opacity_hi: u32,
+    pub colour_lo: u32,
+    pub colour_hi: u32,
+}
+
+impl VirtualLight {
+    /// Whether a TF edit with these (widened) queries can change the light's path.
+    pub fn path_meets(&self, query: u64, opacity_query: u64) -> bool {
+        let opacity = self.opacity_lo as u64 | (self.opacity_hi as u64) << 32;
+        let colour = self.colour_lo as u64 | (self.colour_hi as u64) << 32;
+        (opacity & opacity_query) | (colour & query) != 0
+    }
+
+    /// True when the slot holds a light (a path's unused slots and holes have no power).
+    pub fn is_live(&self) -> bool {
+        self.power.iter().any(|&p| p > 0.0)
+    }
 }
 
 /// Matches `GatherChunk` in manylight_gather.wgsl: the virtual lights one gather dispatch
@@ -114,6 +134,9 @@ impl ManylightPasses {
                     count: None,
                 },
                 storage_entry(10, false),
+                storage_entry(11, true),
+                storage_entry(12, true),
+                storage_entry(13, false),
             ],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {

@@ -9,8 +9,12 @@
 //! paper first re-weights them with its Eq. 6, which is not done here), then they are rebuilt
 //! and the picture restarts.
 
+use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
+
+use bytemuck::Zeroable;
+use voxlight_protocol::TransferFunction;
 
 use crate::passes::manylight::{
     CHUNK_STRIDE, GatherChunk, MAX_NODES, ManylightParams, TransmittanceMode, VirtualLight,
@@ -18,6 +22,7 @@ use crate::passes::manylight::{
 };
 use crate::technique::{StepReport, Technique, TechniqueStats};
 use crate::techniques::progressive::{Estimator, Progressive};
+use crate::tf::{opacity_query_historygram, query_historygram};
 use crate::{Change, Engine, EngineError, GpuVolume, Scene};
 
 /// The knobs of `manylight`.
@@ -55,6 +60,12 @@ impl ManylightConfig {
     pub fn vl_count(&self) -> u32 {
         self.vls
     }
+
+    /// Light slots (each with its shadow map): the lights a build stores, plus a quarter for
+    /// a TF edit's retraced paths, which may leave more lights than before.
+    pub fn slot_count(&self) -> u32 {
+        self.vls + self.vls / 4
+    }
 }
 
 /// Paths traced per stored virtual light at most, before giving up on filling the slots (a
@@ -78,20 +89,19 @@ pub struct BuildTimes {
 pub struct Manylight {
     base: Progressive,
     config: ManylightConfig,
-    params: wgpu::Buffer,
-    vls: wgpu::Buffer,
-    avsm: wgpu::Buffer,
-    /// Gather chunk descriptors, one per `CHUNK_STRIDE`.
-    chunks: wgpu::Buffer,
-    /// One tracing batch's virtual lights, `max_bounces` slots per path.
-    scratch: wgpu::Buffer,
-    /// Virtual lights held, and light paths traced to produce them.
+    buffers: Buffers,
+    /// Virtual-light slots in use (holes included), and light paths traced for them.
     count: u32,
     paths_traced: u64,
+    /// Per traced path, its historygrams (opacity lo, hi, colour lo, hi): also for the paths
+    /// that left no light, which a TF edit can make scatter.
+    path_hists: Vec<[u32; 4]>,
+    /// Per slot, the bins its shadow map's rays crossed (read back after each build).
+    map_hists: Vec<u64>,
     /// Density scale and phase asymmetry the lights and maps were built with.
     built_density: f32,
     built_g: f32,
-    /// The lights as traced (path by path, in order), for exact re-weighting on g edits.
+    /// The lights in their slots as traced (before g re-weighting).
     built_lights: Vec<VirtualLight>,
     /// The g the current powers on the GPU are weighted for.
     weighted_g: f32,
@@ -101,7 +111,63 @@ pub struct Manylight {
     /// After an edit, the next step renders one iteration with the previous virtual lights
     /// and shadow maps (the first frame comes at once), and the step after rebuilds them.
     preview_pending: bool,
+    /// The TF the lights and maps were built with (a TF edit rebuilds only what it changes).
+    built_tf: TransferFunction,
+    /// Only TF edits made them stale: a partial rebuild (update_tf) will do.
+    tf_only: bool,
     pub last_build: BuildTimes,
+    pub last_update: Option<TfUpdate>,
+}
+
+/// The per-session buffers.
+struct Buffers {
+    params: wgpu::Buffer,
+    vls: wgpu::Buffer,
+    avsm: wgpu::Buffer,
+    /// Gather chunk descriptors, one per `CHUNK_STRIDE`.
+    chunks: wgpu::Buffer,
+    /// One tracing batch's virtual lights, `max_bounces` slots per path.
+    scratch: wgpu::Buffer,
+    /// Data bins per macrocell (RangeGrid::bin_masks), as (lo, hi) words.
+    cell_bins: wgpu::Buffer,
+    /// Paths to retrace, or slots whose maps to build (ManylightParams::list_count).
+    work_list: wgpu::Buffer,
+    /// Per slot, (lo, hi) bins its map's rays crossed.
+    avsm_hist: wgpu::Buffer,
+}
+
+impl Buffers {
+    fn bytes(&self) -> u64 {
+        [
+            &self.params,
+            &self.vls,
+            &self.avsm,
+            &self.chunks,
+            &self.scratch,
+            &self.cell_bins,
+            &self.work_list,
+            &self.avsm_hist,
+        ]
+        .iter()
+        .map(|b| b.size())
+        .sum()
+    }
+}
+
+/// What a TF edit's partial rebuild did.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct TfUpdate {
+    pub paths: u64,
+    /// Paths whose historygrams met the edit's queries, traced again.
+    pub paths_retraced: u64,
+    pub lights: u32,
+    /// Lights that came from retraced paths (their maps are new).
+    pub lights_replaced: u32,
+    /// Maps built: the replaced lights' and those whose rays crossed changed opacity.
+    pub maps_rebuilt: u32,
+    /// The slots could not hold the retraced paths' lights: everything was rebuilt.
+    pub full_rebuild: bool,
+    pub time: Duration,
 }
 
 impl Manylight {
@@ -122,7 +188,7 @@ impl Manylight {
                 "manylight: bad configuration {config:?}"
             )));
         }
-        let shadow_bytes = avsm_bytes(config.vl_count(), config.face_res, config.nodes);
+        let shadow_bytes = avsm_bytes(config.slot_count(), config.face_res, config.nodes);
         let binding_limit = engine.gpu.limits.max_storage_buffer_binding_size;
         // Shadow maps are one storage binding; the build dispatches one z layer per light.
         if shadow_bytes > binding_limit {
@@ -131,12 +197,13 @@ impl Manylight {
                 available: binding_limit,
             });
         }
-        if config.vl_count() > 65535 {
+        if config.slot_count() > 65535 {
             return Err(EngineError::InvalidScene(format!(
                 "manylight: {} virtual lights, at most 65535",
-                config.vl_count()
+                config.slot_count()
             )));
         }
+        let cell_bin_masks = volume.ranges.bin_masks();
         let base = Progressive::new(engine, Estimator::Raymarch, volume, scene)?;
         let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
             engine.gpu.buffer(label, size, usage)
@@ -148,12 +215,35 @@ impl Manylight {
         );
         let vls = buffer(
             "manylight virtual lights",
-            config.vl_count() as u64 * size_of::<VirtualLight>() as u64,
+            config.slot_count() as u64 * size_of::<VirtualLight>() as u64,
+            wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+        );
+        let bins: Vec<[u32; 2]> = cell_bin_masks
+            .iter()
+            .map(|&m| [m as u32, (m >> 32) as u32])
+            .collect();
+        let cell_bins = buffer(
+            "manylight cell bins",
+            (bins.len() * 8) as u64,
+            wgpu::BufferUsages::STORAGE,
+        );
+        engine
+            .gpu
+            .queue
+            .write_buffer(&cell_bins, 0, bytemuck::cast_slice(&bins));
+        let work_list = buffer(
+            "manylight work list",
+            BATCH_PATHS.max(config.slot_count()) as u64 * 4,
+            wgpu::BufferUsages::STORAGE,
+        );
+        let avsm_hist = buffer(
+            "manylight avsm historygrams",
+            config.slot_count() as u64 * 8,
             wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
         );
         let avsm = buffer("manylight avsm", shadow_bytes, wgpu::BufferUsages::STORAGE);
         let most_chunks = config
-            .vl_count()
+            .slot_count()
             .div_ceil(gather_chunk(TransmittanceMode::RayMarched));
         let chunks = buffer(
             "manylight gather chunks",
@@ -165,17 +255,25 @@ impl Manylight {
             BATCH_PATHS as u64 * config.max_bounces as u64 * size_of::<VirtualLight>() as u64,
             wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
         );
-        let bind_group = bind_group(engine, &base, &params, &vls, &avsm, &chunks, &scratch);
-        let mut technique = Self {
-            base,
-            config,
+        let buffers = Buffers {
             params,
             vls,
             avsm,
             chunks,
             scratch,
+            cell_bins,
+            work_list,
+            avsm_hist,
+        };
+        let bind_group = bind_group(engine, &base, &buffers);
+        let mut technique = Self {
+            base,
+            config,
+            buffers,
             count: 0,
             paths_traced: 0,
+            path_hists: Vec::new(),
+            map_hists: Vec::new(),
             built_density: scene.params.density_scale,
             built_g: scene.params.g,
             built_lights: Vec::new(),
@@ -183,7 +281,10 @@ impl Manylight {
             bind_group,
             stale: true,
             preview_pending: false,
+            built_tf: scene.tf.clone(),
+            tf_only: false,
             last_build: BuildTimes::default(),
+            last_update: None,
         };
         technique.write_params(engine, scene);
         Ok(technique)
@@ -212,7 +313,7 @@ impl Manylight {
                 pad1: 0,
             };
             queue.write_buffer(
-                &self.chunks,
+                &self.buffers.chunks,
                 c as u64 * CHUNK_STRIDE,
                 bytemuck::bytes_of(&chunk),
             );
@@ -221,10 +322,18 @@ impl Manylight {
 
     /// The parameters, with `first_path` for a light-tracing batch.
     fn write_params_from(&self, engine: &Engine, scene: &Scene, first_path: u64) {
+        let params = self.params_for(scene, first_path);
+        engine
+            .gpu
+            .queue
+            .write_buffer(&self.buffers.params, 0, bytemuck::bytes_of(&params));
+    }
+
+    fn params_for(&self, scene: &Scene, first_path: u64) -> ManylightParams {
         // Stored lights stand for all produced ones when the last batch overflowed the slots.
         let power_scale = self.power_scale() as f32;
-        let params = ManylightParams {
-            capacity: self.config.vls,
+        ManylightParams {
+            capacity: self.config.slot_count(),
             count: self.count,
             first_path: first_path as u32,
             max_bounces: self.config.max_bounces,
@@ -235,59 +344,60 @@ impl Manylight {
             vsl_radius: self.config.vsl_radius,
             built_density: self.built_density,
             power_scale,
-            pad0: 0.0,
-        };
-        engine
-            .gpu
-            .queue
-            .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+            list_count: 0,
+        }
     }
 
     fn chunk_count(&self) -> u32 {
         self.config
-            .vl_count()
+            .slot_count()
             .div_ceil(gather_chunk(self.config.mode))
     }
 
     /// Traces the virtual lights and builds their shadow maps now, timing each on its own.
     pub fn rebuild(&mut self, engine: &Engine, scene: &Scene) -> Result<BuildTimes, EngineError> {
+        self.rebuild_paths(engine, scene, None)
+    }
+
+    /// `rebuild`, or with `paths` set, exactly light paths 0..paths whatever lights they leave
+    /// (what a TF edit's partial rebuild must equal; fails when the slots cannot hold them).
+    pub fn rebuild_paths(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        paths: Option<u64>,
+    ) -> Result<BuildTimes, EngineError> {
         // The passes read the scene uniforms of the next iteration.
         self.base.encode_uniforms(engine, scene)?;
         self.built_density = scene.params.density_scale;
         self.built_g = scene.params.g;
+        self.built_tf = scene.tf.clone();
         let started = Instant::now();
-        let capacity = self.config.vls as usize;
+        // A build stores `vls` lights; a rebuild of given paths may use every slot.
+        let capacity = match paths {
+            None => self.config.vls as usize,
+            Some(_) => self.config.slot_count() as usize,
+        };
         let mut lights: Vec<VirtualLight> = Vec::with_capacity(capacity);
-        let mut traced = 0u64;
-        let per_path_slots = self.config.max_bounces as usize;
+        let mut hists = Vec::new();
+        let most = paths.unwrap_or(self.config.vls as u64 * MAX_PATHS_PER_VL as u64);
         // Batches of paths; whole paths are kept in order while they fit, so the set does not
         // depend on scheduling and the paths counted are exactly those kept (unbiased).
-        'batches: while traced < capacity as u64 * MAX_PATHS_PER_VL as u64 {
-            self.write_params_from(engine, scene, traced);
-            let mut encoder = self.encoder(engine, "manylight vls");
-            {
-                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                    label: Some("manylight vls"),
-                    timestamp_writes: None,
-                });
-                pass.set_pipeline(&engine.manylight.vls);
-                pass.set_bind_group(0, &self.bind_group, &[0]);
-                pass.dispatch_workgroups(BATCH_PATHS / 64, 1, 1);
-            }
-            engine.gpu.queue.submit([encoder.finish()]);
-            let bytes = engine.gpu.read_buffer(&self.scratch)?;
-            let batch: &[VirtualLight] = bytemuck::cast_slice(&bytes);
-            for path in batch.chunks_exact(per_path_slots) {
-                let live: Vec<&VirtualLight> = path
-                    .iter()
-                    .filter(|v| v.power.iter().any(|&p| p > 0.0))
-                    .collect();
+        'batches: while (hists.len() as u64) < most {
+            let batch = self.trace_batch(engine, scene, hists.len() as u64, None)?;
+            for path in batch.chunks_exact(self.config.max_bounces as usize) {
+                let live: Vec<&VirtualLight> = path.iter().filter(|v| v.is_live()).collect();
                 if lights.len() + live.len() > capacity {
+                    if paths.is_some() {
+                        return Err(EngineError::InvalidScene(format!(
+                            "manylight: {most} paths leave more than {capacity} virtual lights"
+                        )));
+                    }
                     break 'batches;
                 }
                 lights.extend(live);
-                traced += 1;
-                if lights.len() == capacity {
+                hists.push(path_hist(&path[0]));
+                if hists.len() as u64 == most || (paths.is_none() && lights.len() == capacity) {
                     break 'batches;
                 }
             }
@@ -296,34 +406,262 @@ impl Manylight {
             engine
                 .gpu
                 .queue
-                .write_buffer(&self.vls, 0, bytemuck::cast_slice(&lights));
+                .write_buffer(&self.buffers.vls, 0, bytemuck::cast_slice(&lights));
         }
-        self.paths_traced = traced;
+        self.paths_traced = hists.len() as u64;
+        self.path_hists = hists;
         self.count = lights.len() as u32;
         self.built_lights = lights;
         self.weighted_g = scene.params.g;
         self.write_params(engine, scene);
         let vls = started.elapsed();
         let started = Instant::now();
-        let mut encoder = self.encoder(engine, "manylight avsm");
-        {
-            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("manylight avsm"),
-                timestamp_writes: None,
-            });
-            pass.set_pipeline(&engine.manylight.avsm);
-            pass.set_bind_group(0, &self.bind_group, &[0]);
-            let r = self.config.face_res;
-            pass.dispatch_workgroups(r.div_ceil(8), (6 * r).div_ceil(8), self.count.max(1));
-        }
-        engine.gpu.queue.submit([encoder.finish()]);
-        engine.gpu.wait_idle()?;
+        self.build_maps(engine, scene, None)?;
         self.last_build = BuildTimes {
             vls,
             avsm: started.elapsed(),
         };
         self.stale = false;
         Ok(self.last_build)
+    }
+
+    /// Traces one batch of light paths: `BATCH_PATHS` from `first_path`, or the listed ones.
+    /// Returns `max_bounces` slots per path.
+    fn trace_batch(
+        &self,
+        engine: &Engine,
+        scene: &Scene,
+        first_path: u64,
+        list: Option<&[u32]>,
+    ) -> Result<Vec<VirtualLight>, EngineError> {
+        self.write_params_from(engine, scene, first_path);
+        if let Some(list) = list {
+            self.write_list(engine, scene, list);
+        }
+        let mut encoder = self.encoder(engine, "manylight vls");
+        {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("manylight vls"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&engine.manylight.vls);
+            pass.set_bind_group(0, &self.bind_group, &[0]);
+            let paths = list.map_or(BATCH_PATHS, |l| l.len() as u32);
+            pass.dispatch_workgroups(paths.div_ceil(64), 1, 1);
+        }
+        engine.gpu.queue.submit([encoder.finish()]);
+        let bytes = engine.gpu.read_buffer(&self.buffers.scratch)?;
+        let mut slots: Vec<VirtualLight> = bytemuck::cast_slice(&bytes).to_vec();
+        if let Some(list) = list {
+            slots.truncate(list.len() * self.config.max_bounces as usize);
+        }
+        Ok(slots)
+    }
+
+    /// Puts `list` in the work list and its length in the parameters (0 turns it off).
+    fn write_list(&self, engine: &Engine, scene: &Scene, list: &[u32]) {
+        if !list.is_empty() {
+            engine
+                .gpu
+                .queue
+                .write_buffer(&self.buffers.work_list, 0, bytemuck::cast_slice(list));
+        }
+        let mut params: ManylightParams = self.params_for(scene, 0);
+        params.list_count = list.len() as u32;
+        engine
+            .gpu
+            .queue
+            .write_buffer(&self.buffers.params, 0, bytemuck::bytes_of(&params));
+    }
+
+    /// Builds the shadow maps of every slot, or of the listed slots, and reads back which
+    /// data bins each map's rays crossed. Blocks.
+    fn build_maps(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        slots: Option<&[u32]>,
+    ) -> Result<(), EngineError> {
+        let zero = [0u32; 2];
+        match slots {
+            None => engine.gpu.queue.write_buffer(
+                &self.buffers.avsm_hist,
+                0,
+                &vec![0u8; self.buffers.avsm_hist.size() as usize],
+            ),
+            Some(list) => {
+                for &slot in list {
+                    engine.gpu.queue.write_buffer(
+                        &self.buffers.avsm_hist,
+                        slot as u64 * 8,
+                        bytemuck::cast_slice(&zero),
+                    );
+                }
+                self.write_list(engine, scene, list);
+            }
+        }
+        let layers = slots.map_or(self.count, |l| l.len() as u32);
+        if layers > 0 {
+            let mut encoder = self.encoder(engine, "manylight avsm");
+            {
+                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("manylight avsm"),
+                    timestamp_writes: None,
+                });
+                pass.set_pipeline(&engine.manylight.avsm);
+                pass.set_bind_group(0, &self.bind_group, &[0]);
+                let r = self.config.face_res;
+                pass.dispatch_workgroups(r.div_ceil(8), (6 * r).div_ceil(8), layers);
+            }
+            engine.gpu.queue.submit([encoder.finish()]);
+        }
+        // Back to every slot for the gather.
+        self.write_params(engine, scene);
+        let bytes = engine.gpu.read_buffer(&self.buffers.avsm_hist)?;
+        let words: &[[u32; 2]] = bytemuck::cast_slice(&bytes);
+        self.map_hists = words
+            .iter()
+            .map(|w| w[0] as u64 | (w[1] as u64) << 32)
+            .collect();
+        Ok(())
+    }
+
+    /// A TF edit answered by a full rebuild.
+    fn full_update(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        started: Instant,
+    ) -> Result<TfUpdate, EngineError> {
+        self.rebuild_paths(engine, scene, None)?;
+        let update = TfUpdate {
+            paths: self.paths_traced,
+            paths_retraced: self.paths_traced,
+            lights: self.count,
+            lights_replaced: self.count,
+            maps_rebuilt: self.count,
+            full_rebuild: true,
+            time: started.elapsed(),
+        };
+        self.last_update = Some(update);
+        Ok(update)
+    }
+
+    /// A TF edit from the built TF to `scene.tf`: traces again only the light paths whose
+    /// historygrams meet the edit, puts their lights in the slots the old ones held (holes
+    /// with no power where fewer come back), and builds the maps of the new lights and of
+    /// the lights whose map rays crossed bins whose opacity changed. The lights and maps then
+    /// equal a full rebuild of the same paths with the new TF. Blocks.
+    pub fn update_tf(&mut self, engine: &Engine, scene: &Scene) -> Result<TfUpdate, EngineError> {
+        let started = Instant::now();
+        if scene.params.density_scale != self.built_density || scene.params.g != self.built_g {
+            // The kept lights were traced with other parameters: start over.
+            return self.full_update(engine, scene, started);
+        }
+        let widen = |q: u64| q | (q << 1) | (q >> 1);
+        let query = widen(query_historygram(&self.built_tf, &scene.tf));
+        let opacity_query = widen(opacity_query_historygram(&self.built_tf, &scene.tf));
+        self.base.encode_uniforms(engine, scene)?;
+        let affected: Vec<u32> = self
+            .path_hists
+            .iter()
+            .enumerate()
+            .filter(|(_, h)| {
+                let opacity = h[0] as u64 | (h[1] as u64) << 32;
+                let colour = h[2] as u64 | (h[3] as u64) << 32;
+                (opacity & opacity_query) | (colour & query) != 0
+            })
+            .map(|(p, _)| p as u32)
+            .collect();
+        // Retrace them (the same random numbers per path, the new TF).
+        let mut retraced: Vec<VirtualLight> = Vec::new();
+        for chunk in affected.chunks(BATCH_PATHS as usize) {
+            let slots = self.trace_batch(engine, scene, 0, Some(chunk))?;
+            for path in slots.chunks_exact(self.config.max_bounces as usize) {
+                self.path_hists[path[0].path as usize] = path_hist(&path[0]);
+                retraced.extend(path.iter().filter(|v| v.is_live()));
+            }
+        }
+        // The old lights of those paths leave their slots; the new ones fill them in order.
+        let is_affected = |p: u32| affected.binary_search(&p).is_ok();
+        let mut free: Vec<u32> = (0..self.count)
+            .filter(|&i| {
+                let light = &self.built_lights[i as usize];
+                light.path != u32::MAX && is_affected(light.path)
+            })
+            .collect();
+        free.extend((0..self.count).filter(|&i| self.built_lights[i as usize].path == u32::MAX));
+        free.sort_unstable();
+        let capacity = self.config.slot_count() as usize;
+        let appended = retraced.len().saturating_sub(free.len());
+        if self.count as usize + appended > capacity {
+            // More lights than slots: start over.
+            return self.full_update(engine, scene, started);
+        }
+        let hole = VirtualLight {
+            path: u32::MAX,
+            ..VirtualLight::zeroed()
+        };
+        let mut slots_written = Vec::new();
+        for &slot in &free {
+            self.built_lights[slot as usize] = hole;
+        }
+        let mut new_lights = retraced.into_iter();
+        for &slot in &free {
+            match new_lights.next() {
+                Some(light) => {
+                    self.built_lights[slot as usize] = light;
+                    slots_written.push(slot);
+                }
+                None => break,
+            }
+        }
+        for light in new_lights {
+            slots_written.push(self.built_lights.len() as u32);
+            self.built_lights.push(light);
+        }
+        self.count = self.built_lights.len() as u32;
+        let lights_replaced = slots_written.len() as u32;
+        // Maps: the new lights', and those whose rays crossed changed opacity.
+        let mut maps: Vec<u32> = slots_written;
+        maps.extend((0..self.count).filter(|&i| {
+            let light = &self.built_lights[i as usize];
+            light.path != u32::MAX
+                && !is_affected(light.path)
+                && self
+                    .map_hists
+                    .get(i as usize)
+                    .is_some_and(|&h| h & opacity_query != 0)
+        }));
+        maps.sort_unstable();
+        maps.dedup();
+        if !self.built_lights.is_empty() {
+            engine.gpu.queue.write_buffer(
+                &self.buffers.vls,
+                0,
+                bytemuck::cast_slice(&self.built_lights),
+            );
+        }
+        self.built_tf = scene.tf.clone();
+        self.weighted_g = self.built_g;
+        self.write_params(engine, scene);
+        if !maps.is_empty() {
+            // Only the rebuilt slots' words are cleared and rewritten; the others stand.
+            self.build_maps(engine, scene, Some(&maps))?;
+        }
+        engine.gpu.wait_idle()?;
+        self.stale = false;
+        let update = TfUpdate {
+            paths: self.paths_traced,
+            paths_retraced: affected.len() as u64,
+            lights: self.count,
+            lights_replaced,
+            maps_rebuilt: maps.len() as u32,
+            full_rebuild: false,
+            time: started.elapsed(),
+        };
+        self.last_update = Some(update);
+        Ok(update)
     }
 
     fn encoder(&self, engine: &Engine, label: &str) -> wgpu::CommandEncoder {
@@ -348,27 +686,42 @@ impl Manylight {
     /// gains Π f_g(cos) / f_built(cos) over those vertices (exact; the paper's §5.2 keeps the
     /// lights unweighted).
     fn reweight_phase(&mut self, engine: &Engine, g: f32) {
-        let mut lights = self.built_lights.clone();
-        let mut factor = 1.0f64;
-        for (k, light) in lights.iter_mut().enumerate() {
-            if light.vertices <= 1.0 {
-                factor = 1.0; // a new path
-            } else {
-                let previous = self.built_lights[k - 1].direction;
-                let cos = (0..3)
-                    .map(|i| previous[i] * light.direction[i])
-                    .sum::<f32>();
-                factor *= phase_hg(cos, g) / phase_hg(cos, self.built_g).max(1e-30);
-            }
-            for c in &mut light.power {
-                *c = (*c as f64 * factor) as f32;
+        // Each light's path, by vertex: the factor of vertex k builds on vertex k − 1's.
+        let mut by_vertex: HashMap<(u32, u32), usize> = HashMap::new();
+        for (i, light) in self.built_lights.iter().enumerate() {
+            if light.path != u32::MAX {
+                by_vertex.insert((light.path, light.vertices as u32), i);
             }
         }
+        let mut factors = vec![1.0f64; self.built_lights.len()];
+        let mut order: Vec<usize> = (0..self.built_lights.len()).collect();
+        order.sort_by_key(|&i| self.built_lights[i].vertices as u32);
+        for i in order {
+            let light = &self.built_lights[i];
+            if light.path == u32::MAX || light.vertices <= 1.0 {
+                continue;
+            }
+            if let Some(&previous) = by_vertex.get(&(light.path, light.vertices as u32 - 1)) {
+                let before = self.built_lights[previous].direction;
+                let cos = (0..3).map(|k| before[k] * light.direction[k]).sum::<f32>();
+                factors[i] =
+                    factors[previous] * phase_hg(cos, g) / phase_hg(cos, self.built_g).max(1e-30);
+            }
+        }
+        let lights: Vec<VirtualLight> = self
+            .built_lights
+            .iter()
+            .zip(&factors)
+            .map(|(light, &factor)| VirtualLight {
+                power: light.power.map(|c| (c as f64 * factor) as f32),
+                ..*light
+            })
+            .collect();
         if !lights.is_empty() {
             engine
                 .gpu
                 .queue
-                .write_buffer(&self.vls, 0, bytemuck::cast_slice(&lights));
+                .write_buffer(&self.buffers.vls, 0, bytemuck::cast_slice(&lights));
         }
         self.weighted_g = g;
     }
@@ -427,20 +780,12 @@ impl Manylight {
 
     /// The virtual lights as traced (for tests).
     pub fn read_virtual_lights(&self, engine: &Engine) -> Result<Vec<VirtualLight>, EngineError> {
-        let bytes = engine.gpu.read_buffer(&self.vls)?;
+        let bytes = engine.gpu.read_buffer(&self.buffers.vls)?;
         Ok(bytemuck::cast_slice(&bytes).to_vec())
     }
 }
 
-fn bind_group(
-    engine: &Engine,
-    base: &Progressive,
-    params: &wgpu::Buffer,
-    vls: &wgpu::Buffer,
-    avsm: &wgpu::Buffer,
-    chunks: &wgpu::Buffer,
-    scratch: &wgpu::Buffer,
-) -> wgpu::BindGroup {
+fn bind_group(engine: &Engine, base: &Progressive, buffers: &Buffers) -> wgpu::BindGroup {
     let b = base.bindings();
     fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
         wgpu::BindGroupEntry {
@@ -464,20 +809,33 @@ fn bind_group(
                 entry(3, b.lights),
                 entry(4, b.accum),
                 entry(5, b.cell_max_opacity),
-                entry(6, params),
-                entry(7, vls),
-                entry(8, avsm),
+                entry(6, &buffers.params),
+                entry(7, &buffers.vls),
+                entry(8, &buffers.avsm),
                 wgpu::BindGroupEntry {
                     binding: 9,
                     resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                        buffer: chunks,
+                        buffer: &buffers.chunks,
                         offset: 0,
                         size: wgpu::BufferSize::new(size_of::<GatherChunk>() as u64),
                     }),
                 },
-                entry(10, scratch),
+                entry(10, &buffers.scratch),
+                entry(11, &buffers.cell_bins),
+                entry(12, &buffers.work_list),
+                entry(13, &buffers.avsm_hist),
             ],
         })
+}
+
+/// A path's historygrams as kept per path: opacity lo, hi, colour lo, hi.
+fn path_hist(slot: &VirtualLight) -> [u32; 4] {
+    [
+        slot.opacity_lo,
+        slot.opacity_hi,
+        slot.colour_lo,
+        slot.colour_hi,
+    ]
 }
 
 impl Technique for Manylight {
@@ -494,15 +852,7 @@ impl Technique for Manylight {
         self.base.apply(engine, scene, change)?;
         match change {
             Change::Viewport => {
-                self.bind_group = bind_group(
-                    engine,
-                    &self.base,
-                    &self.params,
-                    &self.vls,
-                    &self.avsm,
-                    &self.chunks,
-                    &self.scratch,
-                );
+                self.bind_group = bind_group(engine, &self.base, &self.buffers);
             }
             // A new density scale re-weights the lights and rescales their maps exactly
             // (T^(s/s_built), the paper's §5); exposure is display only; a new g re-weights
@@ -513,9 +863,16 @@ impl Technique for Manylight {
                     self.reweight_phase(engine, scene.params.g);
                 }
             }
-            // A new medium or new lights: new light paths and shadow maps.
-            Change::Tf { .. } | Change::Lights | Change::Params => {
+            // A new TF: the light paths and maps it can change are rebuilt (update_tf).
+            Change::Tf { .. } => {
                 self.preview_pending = self.count > 0;
+                self.tf_only = !self.stale || self.tf_only;
+                self.stale = true;
+            }
+            // New lights or parameters: new light paths and shadow maps.
+            Change::Lights | Change::Params => {
+                self.preview_pending = self.count > 0;
+                self.tf_only = false;
                 self.stale = true;
             }
             Change::Camera | Change::Iterations => {}
@@ -545,7 +902,12 @@ impl Technique for Manylight {
             });
         }
         if self.stale && self.base.iteration() < target {
-            self.rebuild(engine, scene)?;
+            if self.tf_only && self.count > 0 {
+                self.update_tf(engine, scene)?;
+            } else {
+                self.rebuild(engine, scene)?;
+            }
+            self.tf_only = false;
             self.base.restart();
         }
         let mut done = 0;
@@ -577,14 +939,9 @@ impl Technique for Manylight {
         let base = self.base.stats();
         TechniqueStats {
             name: self.name(),
-            memory_bytes: base.memory_bytes
-                + self.vls.size()
-                + self.avsm.size()
-                + self.params.size()
-                + self.chunks.size()
-                + self.scratch.size(),
+            memory_bytes: base.memory_bytes + self.buffers.bytes(),
             virtual_lights: Some(self.count),
-            shadow_map_bytes: Some(self.avsm.size()),
+            shadow_map_bytes: Some(self.buffers.avsm.size()),
             build_ms: Some((self.last_build.vls + self.last_build.avsm).as_secs_f32() * 1000.0),
             ..base
         }
