@@ -9,10 +9,11 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use serde_json::json;
+use voxlight_engine::Technique;
 use voxlight_engine::passes::manylight::TransmittanceMode;
 use voxlight_engine::techniques::manylight::{Manylight, ManylightConfig};
 use voxlight_engine::{Change, Engine, GpuVolume, Renderer, Scene};
-use voxlight_protocol::{Camera, Viewport, default_lights};
+use voxlight_protocol::{Camera, TfPoint, TransferFunction, Viewport, default_lights};
 
 pub struct ManylightBench<'a> {
     pub data_dir: Option<&'a Path>,
@@ -193,6 +194,8 @@ pub fn manylight(options: &ManylightBench) -> anyhow::Result<serde_json::Value> 
     renderer.frame(&engine, &edited)?;
     let frame_ms = started.elapsed().as_secs_f64() * 1000.0;
 
+    let tf_edits = tf_edit_rows(&engine, &gpu_volume, &scene, config)?;
+
     Ok(json!({
         "bench": "manylight",
         "adapter": engine.gpu.adapter_name(),
@@ -209,5 +212,117 @@ pub fn manylight(options: &ManylightBench) -> anyhow::Result<serde_json::Value> 
         "tf_edit_first_frame_ms": first_frame_ms,
         "rebuild_frame_ms": rebuild_frame_ms,
         "frame_ms": frame_ms,
+        "tf_edits": tf_edits,
     }))
+}
+
+/// `tf` with the points at or above `from` changed by `edit`, and knots at `from` so that
+/// nothing below it changes (a local edit of the densest values).
+fn edit_above(tf: &TransferFunction, from: f32, edit: impl Fn(&mut TfPoint)) -> TransferFunction {
+    let at = |v: f32| -> TfPoint {
+        let p = &tf.points;
+        let i = p.iter().position(|q| q.value >= v).unwrap_or(p.len() - 1);
+        if i == 0 {
+            return TfPoint { value: v, ..p[0] };
+        }
+        let (a, b) = (&p[i - 1], &p[i]);
+        let f = ((v - a.value) / (b.value - a.value).max(1e-9)).clamp(0.0, 1.0);
+        let mix = |x: f32, y: f32| x + (y - x) * f;
+        TfPoint {
+            value: v,
+            color: [0, 1, 2].map(|k| mix(a.color[k], b.color[k])),
+            opacity: mix(a.opacity, b.opacity),
+        }
+    };
+    let mut points: Vec<TfPoint> = tf
+        .points
+        .iter()
+        .filter(|p| p.value < from)
+        .cloned()
+        .collect();
+    points.push(at(from));
+    let mut above = vec![at(from + 1e-3)];
+    above.extend(tf.points.iter().filter(|p| p.value > from + 1e-3).copied());
+    for p in &mut above {
+        edit(p);
+    }
+    points.extend(above);
+    TransferFunction { points }
+}
+
+/// Beyond the paper: a TF edit retraces only the light paths and rebuilds only the shadow
+/// maps whose historygrams meet it (`Manylight::update_tf`), against a full rebuild of the
+/// same light paths with the new TF: the time of each, what was redone, and the RMS
+/// difference of the two pictures (the saving's cost in error).
+fn tf_edit_rows(
+    engine: &Engine,
+    volume: &Arc<GpuVolume>,
+    scene: &Scene,
+    config: ManylightConfig,
+) -> anyhow::Result<Vec<serde_json::Value>> {
+    let first = scene.tf.points.first().map_or(0.0, |p| p.value);
+    let dense = first + 0.75 * (1.0 - first);
+    let edits = [
+        (
+            "colour of the densest quarter",
+            edit_above(&scene.tf, dense, |p| p.color = [0.3, 0.5, 0.95]),
+        ),
+        (
+            "densest quarter removed",
+            edit_above(&scene.tf, dense, |p| p.opacity = 0.0),
+        ),
+        (
+            "global opacity x0.7",
+            TransferFunction {
+                points: scene
+                    .tf
+                    .points
+                    .iter()
+                    .map(|p| TfPoint {
+                        opacity: p.opacity * 0.7,
+                        ..*p
+                    })
+                    .collect(),
+            },
+        ),
+    ];
+    let mut rows = Vec::new();
+    for (name, tf) in edits {
+        let edited = Scene {
+            tf,
+            ..scene.clone()
+        };
+        let mut incremental = Manylight::new(engine, volume.clone(), scene, config)?;
+        incremental.rebuild(engine, scene)?;
+        let (_, paths) = incremental.virtual_light_count();
+        incremental.apply(engine, &edited, &Change::tf(&scene.tf, &edited.tf))?;
+        let update = incremental.update_tf(engine, &edited)?;
+        let mut full = Manylight::new(engine, volume.clone(), &edited, config)?;
+        let started = Instant::now();
+        full.rebuild_paths(engine, &edited, Some(paths))?;
+        let full_ms = started.elapsed().as_secs_f64() * 1000.0;
+        let picture = |technique: Manylight| -> anyhow::Result<Vec<[f32; 3]>> {
+            let mut renderer =
+                Renderer::with_technique(engine, Box::new(technique), volume.clone(), &edited)?;
+            render(engine, &mut renderer, &edited)
+        };
+        let (a, b) = (picture(incremental)?, picture(full)?);
+        let incremental_ms = update.time.as_secs_f64() * 1000.0;
+        let row = json!({
+            "edit": name,
+            "light_paths": update.paths,
+            "paths_retraced_pct": 100.0 * update.paths_retraced as f64 / update.paths.max(1) as f64,
+            "lights": update.lights,
+            "lights_replaced": update.lights_replaced,
+            "maps_rebuilt_pct": 100.0 * update.maps_rebuilt as f64 / update.lights.max(1) as f64,
+            "full_rebuild_fallback": update.full_rebuild,
+            "incremental_ms": incremental_ms,
+            "full_ms": full_ms,
+            "speedup": full_ms / incremental_ms.max(1e-6),
+            "relative_rms_vs_full": relative_rms(&a, &b),
+        });
+        eprintln!("manylight tf edit: {row}");
+        rows.push(row);
+    }
+    Ok(rows)
 }
