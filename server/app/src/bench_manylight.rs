@@ -262,6 +262,12 @@ fn tf_edit_rows(
 ) -> anyhow::Result<Vec<serde_json::Value>> {
     let first = scene.tf.points.first().map_or(0.0, |p| p.value);
     let dense = first + 0.75 * (1.0 - first);
+    // The knots of the local edits are in the TF before the edit too, so that the table below
+    // them is computed from the same points (bit for bit the same).
+    let scene = &Scene {
+        tf: edit_above(&scene.tf, dense, |_| {}),
+        ..scene.clone()
+    };
     let edits = [
         (
             "colour of the densest quarter",
