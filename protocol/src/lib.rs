@@ -424,6 +424,12 @@ pub struct TechniqueDetails {
     /// `manylight`: milliseconds the last tracing of the lights and map build took.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub build_ms: Option<f32>,
+    /// `manylight`: share of the light paths the last TF edit traced again, in percent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub light_paths_retraced_pct: Option<f32>,
+    /// `manylight`: share of the shadow maps the last TF edit built again, in percent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shadow_maps_rebuilt_pct: Option<f32>,
 }
 
 /// Image encodings of frames.

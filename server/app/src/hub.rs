@@ -353,6 +353,8 @@ fn encode_frame(
         virtual_lights: technique.virtual_lights,
         shadow_map_bytes: technique.shadow_map_bytes,
         build_ms: technique.build_ms,
+        light_paths_retraced_pct: technique.light_paths_retraced_pct,
+        shadow_maps_rebuilt_pct: technique.shadow_maps_rebuilt_pct,
     };
     let (image, format, quality) = match encoding {
         Encoding::Png => (

@@ -37,6 +37,10 @@ pub struct TechniqueStats {
     pub virtual_lights: Option<u32>,
     pub shadow_map_bytes: Option<u64>,
     pub build_ms: Option<f32>,
+    /// `manylight`: shares of the light paths traced again and of the shadow maps built
+    /// again by the last TF edit (None before any).
+    pub light_paths_retraced_pct: Option<f32>,
+    pub shadow_maps_rebuilt_pct: Option<f32>,
 }
 
 pub trait Technique: Send {

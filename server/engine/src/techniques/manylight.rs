@@ -943,6 +943,12 @@ impl Technique for Manylight {
             virtual_lights: Some(self.count),
             shadow_map_bytes: Some(self.buffers.avsm.size()),
             build_ms: Some((self.last_build.vls + self.last_build.avsm).as_secs_f32() * 1000.0),
+            light_paths_retraced_pct: self
+                .last_update
+                .map(|u| 100.0 * u.paths_retraced as f32 / u.paths.max(1) as f32),
+            shadow_maps_rebuilt_pct: self
+                .last_update
+                .map(|u| 100.0 * u.maps_rebuilt as f32 / u.lights.max(1) as f32),
             ..base
         }
     }
