@@ -400,15 +400,13 @@ fn light_set(technique: &Manylight) -> Vec<u8> {
     bytemuck::cast_slice(&lights).to_vec()
 }
 
-/// Beyond the paper: each light path carries the historygrams of the data bins it depended
-/// on, and each shadow map those its rays crossed. A TF edit traces again only the paths it
-/// can change and rebuilds only the maps it can change; the lights then equal a full rebuild
-/// of the same paths bit for bit, and the picture agrees up to summation order. A colour edit
-/// keeps every map but the replaced lights'; an opacity edit of a central object needs all.
-#[test]
-fn a_local_tf_edit_rebuilds_only_what_it_changes() {
-    let engine = engine();
-    let volume = engine
+/// The Cornell phantom (32³) lit from inside, and a small light configuration.
+fn cornell_setup() -> (
+    std::sync::Arc<voxlight_engine::GpuVolume>,
+    voxlight_engine::Scene,
+    ManylightConfig,
+) {
+    let volume = engine()
         .upload_volume(&voxlight_volumes::phantom("cornell", 32).expect("cornell"))
         .expect("upload");
     let mut s = scene(
@@ -435,6 +433,72 @@ fn a_local_tf_edit_rebuilds_only_what_it_changes() {
         max_bounces: 4,
         ..ManylightConfig::default()
     };
+    (volume, s, config)
+}
+
+fn block_removed() -> voxlight_protocol::TransferFunction {
+    cornell_tf(|n, _, o| {
+        if n == "tall block" {
+            *o = 0.0;
+        }
+    })
+}
+
+/// The paper's progressive redistribution: driven by the render loop, a TF edit is carried
+/// out a few maps per step (the picture restarting with each change), and ends exactly where
+/// the all-at-once update does.
+#[test]
+fn a_tf_edit_is_carried_out_progressively() {
+    let engine = engine();
+    let (volume, s, config) = cornell_setup();
+    let mut edited = s.clone();
+    edited.tf = block_removed();
+    let change = voxlight_engine::Change::tf(&s.tf, &edited.tf);
+    let mut at_once = Manylight::new(engine, volume.clone(), &s, config).expect("manylight");
+    converge(&mut at_once, &s);
+    at_once.apply(engine, &edited, &change).expect("apply");
+    at_once.update_tf(engine, &edited).expect("update");
+    let mut progressive = Manylight::new(engine, volume, &s, config).expect("manylight");
+    converge(&mut progressive, &s);
+    progressive.apply(engine, &edited, &change).expect("apply");
+    let mut steps = 0;
+    loop {
+        let report = progressive
+            .step(engine, &edited, Duration::ZERO)
+            .expect("step");
+        steps += 1;
+        if report.converged {
+            break;
+        }
+        assert!(steps < 1000, "never converged");
+    }
+    let update = progressive.last_update.expect("an update");
+    assert!(!update.full_rebuild);
+    // 8 maps per zero-budget step at least, plus the preview and the final iterations.
+    assert!(
+        steps as u32 > update.maps_rebuilt / 8,
+        "{steps} steps for {} maps",
+        update.maps_rebuilt
+    );
+    assert_eq!(
+        Some(update.maps_rebuilt),
+        at_once.last_update.map(|u| u.maps_rebuilt)
+    );
+    assert!(light_set(&progressive) == light_set(&at_once));
+    converge(&mut at_once, &edited);
+    let (a, b) = (technique_hdr(&progressive), technique_hdr(&at_once));
+    assert!(a == b, "pictures differ by {}", relative_rms(&a, &b));
+}
+
+/// Beyond the paper: each light path carries the historygrams of the data bins it depended
+/// on, and each shadow map those its rays crossed. A TF edit traces again only the paths it
+/// can change and rebuilds only the maps it can change; the lights then equal a full rebuild
+/// of the same paths bit for bit, and the picture agrees up to summation order. A colour edit
+/// keeps every map but the replaced lights'; an opacity edit of a central object needs all.
+#[test]
+fn a_local_tf_edit_rebuilds_only_what_it_changes() {
+    let engine = engine();
+    let (volume, s, config) = cornell_setup();
     let edits: [(&str, voxlight_protocol::TransferFunction); 2] = [
         (
             "block colour",
@@ -444,14 +508,7 @@ fn a_local_tf_edit_rebuilds_only_what_it_changes() {
                 }
             }),
         ),
-        (
-            "block removed",
-            cornell_tf(|n, _, o| {
-                if n == "tall block" {
-                    *o = 0.0;
-                }
-            }),
-        ),
+        ("block removed", block_removed()),
     ];
     for (name, tf) in edits {
         let mut technique = Manylight::new(engine, volume.clone(), &s, config).expect("manylight");

@@ -76,6 +76,9 @@ const MAX_PATHS_PER_VL: u32 = 256;
 /// per-vertex weight f_new/f_old grows fast with it: 1.3 at 0 → 0.3, 3.3 at 0 → 0.6).
 const MAX_REWEIGHTED_G_CHANGE: f32 = 0.3;
 
+/// Fewest shadow maps a step rebuilds while a TF edit is carried out progressively.
+const MIN_MAPS_PER_STEP: usize = 8;
+
 /// Light paths per tracing batch (the scratch buffer holds `max_bounces` lights for each).
 const BATCH_PATHS: u32 = 4096;
 
@@ -117,6 +120,18 @@ pub struct Manylight {
     tf_only: bool,
     pub last_build: BuildTimes,
     pub last_update: Option<TfUpdate>,
+    /// A TF edit's partial rebuild still being carried out, a few maps per step.
+    pending: Option<PendingUpdate>,
+}
+
+/// The rest of a TF edit's partial rebuild.
+struct PendingUpdate {
+    /// (slot, its new light, whether its map is built), by slot.
+    slots: Vec<(u32, VirtualLight, bool)>,
+    /// The first slot not yet carried out.
+    next: usize,
+    started: Instant,
+    update: TfUpdate,
 }
 
 /// The per-session buffers.
@@ -285,6 +300,7 @@ impl Manylight {
             tf_only: false,
             last_build: BuildTimes::default(),
             last_update: None,
+            pending: None,
         };
         technique.write_params(engine, scene);
         Ok(technique)
@@ -369,6 +385,7 @@ impl Manylight {
     ) -> Result<BuildTimes, EngineError> {
         // The passes read the scene uniforms of the next iteration.
         self.base.encode_uniforms(engine, scene)?;
+        self.pending = None;
         self.built_density = scene.params.density_scale;
         self.built_g = scene.params.g;
         self.built_tf = scene.tf.clone();
@@ -532,7 +549,7 @@ impl Manylight {
         engine: &Engine,
         scene: &Scene,
         started: Instant,
-    ) -> Result<TfUpdate, EngineError> {
+    ) -> Result<(), EngineError> {
         self.rebuild_paths(engine, scene, None)?;
         let update = TfUpdate {
             paths: self.paths_traced,
@@ -544,18 +561,35 @@ impl Manylight {
             time: started.elapsed(),
         };
         self.last_update = Some(update);
-        Ok(update)
+        Ok(())
     }
 
-    /// A TF edit from the built TF to `scene.tf`: traces again only the light paths whose
-    /// historygrams meet the edit, puts their lights in the slots the old ones held (holes
-    /// with no power where fewer come back), and builds the maps of the new lights and of
-    /// the lights whose map rays crossed bins whose opacity changed. The lights and maps then
-    /// equal a full rebuild of the same paths with the new TF. Blocks.
+    /// A TF edit from the built TF to `scene.tf`, all at once: traces again only the light
+    /// paths whose historygrams meet the edit, puts their lights in the slots the old ones
+    /// held (holes with no power where fewer come back), and builds the maps of the new
+    /// lights and of the lights whose map rays crossed bins whose opacity changed. The lights
+    /// and maps then equal a full rebuild of the same paths with the new TF. Blocks.
     pub fn update_tf(&mut self, engine: &Engine, scene: &Scene) -> Result<TfUpdate, EngineError> {
+        self.begin_tf_update(engine, scene)?;
+        while self.pending.is_some() {
+            self.advance_tf_update(engine, scene, usize::MAX)?;
+        }
+        Ok(self.last_update.unwrap_or_default())
+    }
+
+    /// The first half of `update_tf`: traces the affected paths again and plans which slots
+    /// get which light and which maps are built; `advance_tf_update` carries it out, a few
+    /// maps at a time (the paper's progressive redistribution), while the other slots keep
+    /// their lights and maps. Falls back to a full rebuild when the kept lights were traced
+    /// with another density scale or g, or the slots cannot hold the new lights.
+    fn begin_tf_update(&mut self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
         let started = Instant::now();
+        // A previous edit's slots still to be carried out hold lights of an older TF: finish
+        // it first, so that every slot is of `built_tf`.
+        while self.pending.is_some() {
+            self.advance_tf_update(engine, scene, usize::MAX)?;
+        }
         if scene.params.density_scale != self.built_density || scene.params.g != self.built_g {
-            // The kept lights were traced with other parameters: start over.
             return self.full_update(engine, scene, started);
         }
         let widen = |q: u64| q | (q << 1) | (q >> 1);
@@ -575,10 +609,11 @@ impl Manylight {
             .collect();
         // Retrace them (the same random numbers per path, the new TF).
         let mut retraced: Vec<VirtualLight> = Vec::new();
+        let mut hists = Vec::new();
         for chunk in affected.chunks(BATCH_PATHS as usize) {
             let slots = self.trace_batch(engine, scene, 0, Some(chunk))?;
             for path in slots.chunks_exact(self.config.max_bounces as usize) {
-                self.path_hists[path[0].path as usize] = path_hist(&path[0]);
+                hists.push((path[0].path as usize, path_hist(&path[0])));
                 retraced.extend(path.iter().filter(|v| v.is_live()));
             }
         }
@@ -587,81 +622,112 @@ impl Manylight {
         let mut free: Vec<u32> = (0..self.count)
             .filter(|&i| {
                 let light = &self.built_lights[i as usize];
-                light.path != u32::MAX && is_affected(light.path)
+                light.path == u32::MAX || is_affected(light.path)
             })
             .collect();
-        free.extend((0..self.count).filter(|&i| self.built_lights[i as usize].path == u32::MAX));
-        free.sort_unstable();
-        let capacity = self.config.slot_count() as usize;
         let appended = retraced.len().saturating_sub(free.len());
-        if self.count as usize + appended > capacity {
-            // More lights than slots: start over.
+        if self.count as usize + appended > self.config.slot_count() as usize {
             return self.full_update(engine, scene, started);
         }
+        for (path, hist) in hists {
+            self.path_hists[path] = hist;
+        }
+        free.extend(self.count..self.count + appended as u32);
         let hole = VirtualLight {
             path: u32::MAX,
             ..VirtualLight::zeroed()
         };
-        let mut slots_written = Vec::new();
-        for &slot in &free {
-            self.built_lights[slot as usize] = hole;
-        }
+        let lights_replaced = retraced.len() as u32;
         let mut new_lights = retraced.into_iter();
-        for &slot in &free {
-            match new_lights.next() {
-                Some(light) => {
-                    self.built_lights[slot as usize] = light;
-                    slots_written.push(slot);
-                }
-                None => break,
-            }
-        }
-        for light in new_lights {
-            slots_written.push(self.built_lights.len() as u32);
-            self.built_lights.push(light);
-        }
-        self.count = self.built_lights.len() as u32;
-        let lights_replaced = slots_written.len() as u32;
-        // Maps: the new lights', and those whose rays crossed changed opacity.
-        let mut maps: Vec<u32> = slots_written;
-        maps.extend((0..self.count).filter(|&i| {
-            let light = &self.built_lights[i as usize];
-            light.path != u32::MAX
+        // (slot, its light, whether its map is built): the freed slots in order, then the
+        // kept lights whose map rays crossed bins whose opacity changed.
+        let mut slots: Vec<(u32, VirtualLight, bool)> = free
+            .iter()
+            .map(|&slot| match new_lights.next() {
+                Some(light) => (slot, light, true),
+                None => (slot, hole, false),
+            })
+            .collect();
+        slots.extend((0..self.count).filter_map(|i| {
+            let light = self.built_lights[i as usize];
+            let outdated = light.path != u32::MAX
                 && !is_affected(light.path)
                 && self
                     .map_hists
                     .get(i as usize)
-                    .is_some_and(|&h| h & opacity_query != 0)
+                    .is_some_and(|&h| h & opacity_query != 0);
+            outdated.then_some((i, light, true))
         }));
-        maps.sort_unstable();
-        maps.dedup();
-        if !self.built_lights.is_empty() {
+        slots.sort_by_key(|&(slot, _, _)| slot);
+        let maps = slots.iter().filter(|s| s.2).count() as u32;
+        self.built_tf = scene.tf.clone();
+        self.stale = false;
+        self.pending = Some(PendingUpdate {
+            slots,
+            next: 0,
+            started,
+            update: TfUpdate {
+                paths: self.paths_traced,
+                paths_retraced: affected.len() as u64,
+                lights: self.count + appended as u32,
+                lights_replaced,
+                maps_rebuilt: maps,
+                full_rebuild: false,
+                time: Duration::ZERO,
+            },
+        });
+        Ok(())
+    }
+
+    /// Carries out the planned TF update for the next slots, building at most `max_maps`
+    /// maps; the lights and maps of those slots change together. Blocks.
+    fn advance_tf_update(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        max_maps: usize,
+    ) -> Result<(), EngineError> {
+        let Some(mut pending) = self.pending.take() else {
+            return Ok(());
+        };
+        let mut maps = Vec::new();
+        while let Some(&(slot, light, build)) = pending.slots.get(pending.next) {
+            if build && maps.len() >= max_maps.max(1) {
+                break;
+            }
+            pending.next += 1;
+            let index = slot as usize;
+            if index == self.built_lights.len() {
+                self.built_lights.push(light);
+            } else {
+                self.built_lights[index] = light;
+            }
             engine.gpu.queue.write_buffer(
                 &self.buffers.vls,
-                0,
-                bytemuck::cast_slice(&self.built_lights),
+                index as u64 * size_of::<VirtualLight>() as u64,
+                bytemuck::bytes_of(&light),
             );
+            if build {
+                maps.push(slot);
+            }
         }
-        self.built_tf = scene.tf.clone();
+        self.count = self.built_lights.len() as u32;
         self.weighted_g = self.built_g;
         self.write_params(engine, scene);
         if !maps.is_empty() {
-            // Only the rebuilt slots' words are cleared and rewritten; the others stand.
+            // Only these slots' map words are cleared and rewritten; the others stand.
             self.build_maps(engine, scene, Some(&maps))?;
         }
         engine.gpu.wait_idle()?;
-        self.stale = false;
-        let update = TfUpdate {
-            paths: self.paths_traced,
-            paths_retraced: affected.len() as u64,
-            lights: self.count,
-            lights_replaced,
-            maps_rebuilt: maps.len() as u32,
-            full_rebuild: false,
-            time: started.elapsed(),
-        };
-        self.last_update = Some(update);
-        Ok(update)
+        if pending.next < pending.slots.len() {
+            self.pending = Some(pending);
+        } else {
+            self.last_update = Some(TfUpdate {
+                time: pending.started.elapsed(),
+                ..pending.update
+            });
+        }
+        Ok(())
     }
 
     fn encoder(&self, engine: &Engine, label: &str) -> wgpu::CommandEncoder {
@@ -903,7 +969,7 @@ impl Technique for Manylight {
         }
         if self.stale && self.base.iteration() < target {
             if self.tf_only && self.count > 0 {
-                self.update_tf(engine, scene)?;
+                self.begin_tf_update(engine, scene)?;
             } else {
                 self.rebuild(engine, scene)?;
             }
@@ -911,10 +977,22 @@ impl Technique for Manylight {
             self.base.restart();
         }
         let mut done = 0;
-        while self.base.iteration() < target {
-            self.iterate(engine, scene)?;
-            done += 1;
-            engine.gpu.wait_idle()?;
+        loop {
+            if self.pending.is_some() {
+                // A few maps per step, sized to half the budget by the last build's rate; the
+                // picture restarts with each change of the lights.
+                let per_map = self.last_build.avsm.as_secs_f64() / self.count.max(1) as f64;
+                let maps = (0.5 * budget.as_secs_f64() / per_map.max(1e-6)) as usize;
+                self.advance_tf_update(engine, scene, maps.max(MIN_MAPS_PER_STEP))?;
+                self.base.restart();
+            }
+            if self.base.iteration() < target {
+                self.iterate(engine, scene)?;
+                done += 1;
+                engine.gpu.wait_idle()?;
+            } else if self.pending.is_none() {
+                break;
+            }
             if budget.is_zero() || started.elapsed() >= budget {
                 break;
             }
@@ -922,9 +1000,19 @@ impl Technique for Manylight {
         Ok(StepReport {
             iterations_done: done,
             iteration: self.base.iteration(),
-            converged: self.base.iteration() >= target,
+            converged: self.pending.is_none() && self.base.iteration() >= target,
             gpu_time: started.elapsed(),
         })
+    }
+
+    /// While a TF edit's maps are still being rebuilt the picture is not final, whatever
+    /// its iteration count.
+    fn target_iterations(&self, scene: &Scene) -> u32 {
+        if self.pending.is_some() {
+            scene.target_iterations.max(self.base.iteration() + 1)
+        } else {
+            scene.target_iterations
+        }
     }
 
     fn output(&self) -> &wgpu::Buffer {
