@@ -160,7 +160,7 @@ pub fn manylight(options: &ManylightBench) -> anyhow::Result<serde_json::Value> 
     }
 
     // From a TF edit to the first frame that shows it (one iteration with the previous lights,
-    // tone map, readback), then the frame that rebuilds, then an ordinary frame; with the
+    // tone map, readback), then the frame that starts the rebuild, then an ordinary frame; with the
     // largest VL count and trilinear lookups.
     let largest = options.vls.iter().copied().max().unwrap_or(256);
     let config = ManylightConfig {
@@ -183,7 +183,8 @@ pub fn manylight(options: &ManylightBench) -> anyhow::Result<serde_json::Value> 
     renderer.step(&engine, &edited, Duration::ZERO)?;
     renderer.frame(&engine, &edited)?;
     let first_frame_ms = started.elapsed().as_secs_f64() * 1000.0;
-    // The next frame traces the lights and builds the maps again.
+    // The next frame starts the partial rebuild: the affected paths traced again and the
+    // first few maps built (the rest follow in later steps).
     let started = Instant::now();
     renderer.step(&engine, &edited, Duration::ZERO)?;
     renderer.frame(&engine, &edited)?;
