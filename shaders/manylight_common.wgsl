@@ -56,6 +56,12 @@ struct VirtualLight {
     opacity_hi: u32,
     colour_lo: u32,
     colour_hi: u32,
+    // The data value at this vertex: the immediate re-weighting after a TF edit (the paper's
+    // Eq. 6) changes the albedo there.
+    value: f32,
+    pad0: u32,
+    pad1: u32,
+    pad2: u32,
 }
 
 // Historygram bit (lo, hi words) of data value v: bin floor(v·63) of 64.

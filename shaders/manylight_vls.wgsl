@@ -152,7 +152,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let start = max(weight.x, max(weight.y, weight.z));
     var alive = start > 0.0;
     for (var k = 0u; k < ml.max_bounces; k++) {
-        var vl = VirtualLight(vec3<f32>(0.0), 0.0, vec3<f32>(0.0), 0.0, dir, path, 0u, 0u, 0u, 0u);
+        var vl = VirtualLight(vec3<f32>(0.0), 0.0, vec3<f32>(0.0), 0.0, dir, path, 0u, 0u, 0u, 0u, 0.0, 0u, 0u, 0u);
         if (alive) {
             let hit = intersect_box(origin, dir, scene.box_min, scene.box_max);
             var event = vec2<f32>(0.0, 0.0);
@@ -163,10 +163,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                 alive = false;
             } else {
                 let p = origin + dir * event.x;
-                weight *= medium_at(p).rgb;
-                colour_bins |= value_bin_bits(sample_volume(box_relative(p)));
+                let value = sample_volume(box_relative(p));
+                weight *= classify(value).rgb;
+                colour_bins |= value_bin_bits(value);
                 tau += unit_optical_depth(origin, dir, max(hit.x, 0.0), event.x);
-                vl = VirtualLight(p, tau, weight, f32(k + 1u), dir, path, 0u, 0u, 0u, 0u);
+                vl = VirtualLight(p, tau, weight, f32(k + 1u), dir, path, 0u, 0u, 0u, 0u, value, 0u, 0u, 0u);
                 // Roulette on the throughput relative to the emitted power.
                 let survive = min(1.0, max(weight.x, max(weight.y, weight.z)) / start);
                 if (rng_next(&rng) >= survive) {

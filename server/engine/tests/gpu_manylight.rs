@@ -562,3 +562,62 @@ fn a_local_tf_edit_rebuilds_only_what_it_changes() {
         assert!(rms < 1e-4, "{name}: pictures differ by {rms}");
     }
 }
+
+/// The paper's Eq. 6: right after a TF edit the lights keep their positions and maps and take
+/// the new albedos along their paths, so the first frame is closer to the rebuilt picture than
+/// one with the old lights unchanged.
+#[test]
+fn the_first_frame_after_a_colour_edit_reweights_the_lights() {
+    let engine = engine();
+    let (volume, s, config) = cornell_setup();
+    let mut edited = s.clone();
+    edited.tf = cornell_tf(|n, c, _| {
+        if n == "white walls" || n == "medium" {
+            *c = [0.9, 0.2, 0.1];
+        }
+    });
+    let change = voxlight_engine::Change::tf(&s.tf, &edited.tf);
+    // The same change, but claiming the TF was already the new one: no re-weighting.
+    let unweighted = match &change {
+        voxlight_engine::Change::Tf {
+            query_historygram, ..
+        } => voxlight_engine::Change::Tf {
+            old: edited.tf.clone(),
+            query_historygram: *query_historygram,
+        },
+        _ => unreachable!(),
+    };
+    let first_frame = |change: &voxlight_engine::Change| {
+        let mut technique = Manylight::new(engine, volume.clone(), &s, config).expect("manylight");
+        converge(&mut technique, &s);
+        technique.apply(engine, &edited, change).expect("apply");
+        technique
+            .step(engine, &edited, Duration::ZERO)
+            .expect("preview");
+        assert_eq!(technique.iteration(), 1);
+        technique_hdr(&technique)
+    };
+    let reweighted = first_frame(&change);
+    let old_lights = first_frame(&unweighted);
+    // The rebuilt picture at the same iteration (same jitter).
+    let mut rebuilt = Manylight::new(engine, volume.clone(), &s, config).expect("manylight");
+    converge(&mut rebuilt, &s);
+    rebuilt.apply(engine, &edited, &change).expect("apply");
+    rebuilt.update_tf(engine, &edited).expect("update");
+    let one = voxlight_engine::Scene {
+        target_iterations: 1,
+        ..edited.clone()
+    };
+    rebuilt.set_mode(engine, &one, config.mode);
+    converge(&mut rebuilt, &one);
+    let rebuilt = technique_hdr(&rebuilt);
+    let (with, without) = (
+        relative_rms(&reweighted, &rebuilt),
+        relative_rms(&old_lights, &rebuilt),
+    );
+    eprintln!("first frame vs rebuilt: re-weighted {with:.4}, old lights {without:.4}");
+    assert!(
+        with < 0.8 * without,
+        "re-weighting does not help: {with} vs {without}"
+    );
+}

@@ -131,6 +131,6 @@ fn rust_and_wgsl_layouts_agree() {
         "VirtualLight",
         size_of::<VirtualLight>(),
         fields!(VirtualLight: position, tau, power, vertices, direction, path, opacity_lo,
-            opacity_hi, colour_lo, colour_hi),
+            opacity_hi, colour_lo, colour_hi, value, pad0, pad1, pad2),
     );
 }

@@ -45,6 +45,11 @@ pub struct VirtualLight {
     pub opacity_hi: u32,
     pub colour_lo: u32,
     pub colour_hi: u32,
+    /// The data value at this vertex (for re-weighting after a TF edit).
+    pub value: f32,
+    pub pad0: u32,
+    pub pad1: u32,
+    pub pad2: u32,
 }
 
 impl VirtualLight {

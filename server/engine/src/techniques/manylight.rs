@@ -22,7 +22,7 @@ use crate::passes::manylight::{
 };
 use crate::technique::{StepReport, Technique, TechniqueStats};
 use crate::techniques::progressive::{Estimator, Progressive};
-use crate::tf::{opacity_query_historygram, query_historygram};
+use crate::tf::{TF_LUT_SIZE, bake, opacity_query_historygram, query_historygram};
 use crate::{Change, Engine, EngineError, GpuVolume, Scene};
 
 /// The knobs of `manylight`.
@@ -792,6 +792,68 @@ impl Manylight {
         self.weighted_g = g;
     }
 
+    /// The immediate update after a TF edit (the paper's Eq. 6 with our analog distance
+    /// sampling, where T_new / p_new · σs_new at a vertex is its new albedo): every light keeps
+    /// its position and map, and its power takes Π albedo_new / albedo_old over the vertices of
+    /// its path up to it. Approximate (the positions and maps are the old TF's, and roulette
+    /// is not redone); the partial rebuild then replaces what the edit changed. Lights whose
+    /// paths the edit cannot change get a factor of exactly 1.
+    fn reweight_for_tf(&mut self, engine: &Engine, old: &TransferFunction, new: &TransferFunction) {
+        let (old_lut, new_lut) = (bake(old), bake(new));
+        let classify = |lut: &[[f32; 4]], v: f32| -> [f32; 4] {
+            let x = v.clamp(0.0, 1.0) * (TF_LUT_SIZE - 1) as f32;
+            let i = (x as usize).min(TF_LUT_SIZE - 2);
+            let f = x - i as f32;
+            [0, 1, 2, 3].map(|k| lut[i][k] + (lut[i + 1][k] - lut[i][k]) * f)
+        };
+        let mut by_vertex: HashMap<(u32, u32), usize> = HashMap::new();
+        for (i, light) in self.built_lights.iter().enumerate() {
+            if light.path != u32::MAX {
+                by_vertex.insert((light.path, light.vertices as u32), i);
+            }
+        }
+        let mut factors = vec![[1.0f64; 3]; self.built_lights.len()];
+        let mut order: Vec<usize> = (0..self.built_lights.len()).collect();
+        order.sort_by_key(|&i| self.built_lights[i].vertices as u32);
+        for i in order {
+            let light = self.built_lights[i];
+            if light.path == u32::MAX {
+                continue;
+            }
+            let (a_old, a_new) = (
+                classify(&old_lut, light.value),
+                classify(&new_lut, light.value),
+            );
+            let before = by_vertex
+                .get(&(light.path, (light.vertices as u32).saturating_sub(1)))
+                .filter(|_| light.vertices > 1.0)
+                .map_or([1.0; 3], |&p| factors[p]);
+            factors[i] = [0, 1, 2].map(|k| {
+                let ratio = if a_old[k] > 0.0 {
+                    a_new[k] as f64 / a_old[k] as f64
+                } else {
+                    0.0
+                };
+                before[k] * ratio
+            });
+        }
+        let lights: Vec<VirtualLight> = self
+            .built_lights
+            .iter()
+            .zip(&factors)
+            .map(|(light, factor)| VirtualLight {
+                power: [0, 1, 2].map(|k| (light.power[k] as f64 * factor[k]) as f32),
+                ..*light
+            })
+            .collect();
+        if !lights.is_empty() {
+            engine
+                .gpu
+                .queue
+                .write_buffer(&self.buffers.vls, 0, bytemuck::cast_slice(&lights));
+        }
+    }
+
     /// Runs `iterations` gather passes alone (no single scattering) and waits: the cost of
     /// multiple scattering with the current transmittance mode (benchmarks).
     pub fn time_gather(
@@ -929,8 +991,12 @@ impl Technique for Manylight {
                     self.reweight_phase(engine, scene.params.g);
                 }
             }
-            // A new TF: the light paths and maps it can change are rebuilt (update_tf).
-            Change::Tf { .. } => {
+            // A new TF: the light paths and maps it can change are rebuilt (update_tf); until
+            // then the lights are re-weighted for the new albedos (the paper's Eq. 6).
+            Change::Tf { old, .. } => {
+                if self.count > 0 && self.pending.is_none() && self.weighted_g == self.built_g {
+                    self.reweight_for_tf(engine, old, &scene.tf);
+                }
                 self.preview_pending = self.count > 0;
                 self.tf_only = !self.stale || self.tf_only;
                 self.stale = true;
