@@ -76,18 +76,21 @@ impl RangeGrid {
     /// Largest opacity the baked TF `lut` gives any value in each cell's range.
     pub fn max_opacity(&self, lut: &[[f32; 4]]) -> Vec<f32> {
         let range_max = RangeMax::new(lut.iter().map(|e| e[3]).collect());
-        let last = (TF_LUT_SIZE - 1) as f32;
-        self.min
-            .iter()
-            .zip(&self.max)
-            .map(|(&lo, &hi)| {
-                // The shader interpolates entries i and i + 1 around v·(N − 1); one more entry
-                // on each side covers rounding of v.
-                let first = ((lo as f32 / 65535.0 * last) as usize).saturating_sub(1);
-                let end = ((hi as f32 / 65535.0 * last) as usize + 2).min(TF_LUT_SIZE - 1);
-                range_max.query(first, end)
-            })
+        self.lut_ranges()
+            .map(|(first, end)| range_max.query(first, end))
             .collect()
+    }
+
+    /// Per cell, the first and last LUT entries any value in its range reads: the shader
+    /// interpolates entries i and i + 1 around v·(N − 1); one more entry on each side covers
+    /// rounding of v.
+    fn lut_ranges(&self) -> impl Iterator<Item = (usize, usize)> + '_ {
+        let last = (TF_LUT_SIZE - 1) as f32;
+        self.min.iter().zip(&self.max).map(move |(&lo, &hi)| {
+            let first = ((lo as f32 / 65535.0 * last) as usize).saturating_sub(1);
+            let end = ((hi as f32 / 65535.0 * last) as usize + 2).min(TF_LUT_SIZE - 1);
+            (first, end)
+        })
     }
 
     /// Per cell, the historygram bins (as `tf::query_historygram` numbers them) of every LUT
@@ -95,12 +98,8 @@ impl RangeGrid {
     /// any sample in it, can only change under a TF edit whose query meets these bins.
     pub fn bin_masks(&self) -> Vec<u64> {
         let last = (TF_LUT_SIZE - 1) as f32;
-        self.min
-            .iter()
-            .zip(&self.max)
-            .map(|(&lo, &hi)| {
-                let first = ((lo as f32 / 65535.0 * last) as usize).saturating_sub(1);
-                let end = ((hi as f32 / 65535.0 * last) as usize + 2).min(TF_LUT_SIZE - 1);
+        self.lut_ranges()
+            .map(|(first, end)| {
                 let (a, b) = (value_bin(first as f32 / last), value_bin(end as f32 / last));
                 (a..=b).fold(0u64, |mask, bin| mask | 1 << bin)
             })

@@ -364,27 +364,9 @@ fn assert_recovers_multiple_scattering(estimates: &[(&str, f64)], reference: f64
     }
 }
 
-/// The Cornell phantom's materials with a narrow plateau each; `edit` changes one.
+/// The Cornell materials' TF of these tests; `edit` changes one material.
 fn cornell_tf(edit: impl Fn(&str, &mut [f32; 3], &mut f32)) -> voxlight_protocol::TransferFunction {
-    use voxlight_protocol::TfPoint;
-    let point = |value: f32, color: [f32; 3], opacity: f32| TfPoint {
-        value,
-        color,
-        opacity,
-    };
-    let mut points = vec![point(0.0, [0.0; 3], 0.0), point(0.05, [0.0; 3], 0.0)];
-    for (name, value) in voxlight_volumes::CORNELL_MATERIALS {
-        let (mut color, mut opacity) = match *name {
-            "medium" => ([0.9, 0.9, 0.9], 0.05),
-            "left wall" => ([0.85, 0.1, 0.08], 1.0),
-            "right wall" => ([0.1, 0.75, 0.12], 1.0),
-            _ => ([0.85, 0.85, 0.85], 1.0),
-        };
-        edit(name, &mut color, &mut opacity);
-        points.push(point(value - 0.03, color, opacity));
-        points.push(point((value + 0.03).min(1.0), color, opacity));
-    }
-    voxlight_protocol::TransferFunction { points }
+    cornell_materials_tf(0.05, edit)
 }
 
 /// The live lights sorted by (path, vertex), as bytes: a set comparison of two builds.

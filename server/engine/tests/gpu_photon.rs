@@ -10,31 +10,11 @@ use std::time::Duration;
 use common::*;
 use voxlight_engine::techniques::photon::{Invalidation, Photon, PhotonParams, PhotonState};
 use voxlight_engine::{Change, GpuVolume, Scene, Technique};
-use voxlight_protocol::{Camera, Light, TfPoint, TransferFunction};
+use voxlight_protocol::{Camera, Light, TransferFunction};
 
-fn point(value: f32, color: [f32; 3], opacity: f32) -> TfPoint {
-    TfPoint {
-        value,
-        color,
-        opacity,
-    }
-}
-
-/// The Cornell phantom's materials with a narrow plateau each (like the app's cornell_tf).
+/// The Cornell materials' TF of these tests; `edit` changes one material.
 fn cornell_tf(edit: impl Fn(&str, &mut [f32; 3], &mut f32)) -> TransferFunction {
-    let mut points = vec![point(0.0, [0.0; 3], 0.0), point(0.05, [0.0; 3], 0.0)];
-    for (name, value) in voxlight_volumes::CORNELL_MATERIALS {
-        let (mut color, mut opacity) = match *name {
-            "medium" => ([0.9, 0.9, 0.9], 0.02),
-            "left wall" => ([0.85, 0.1, 0.08], 1.0),
-            "right wall" => ([0.1, 0.75, 0.12], 1.0),
-            _ => ([0.85, 0.85, 0.85], 1.0),
-        };
-        edit(name, &mut color, &mut opacity);
-        points.push(point(value - 0.03, color, opacity));
-        points.push(point((value + 0.03).min(1.0), color, opacity));
-    }
-    TransferFunction { points }
+    cornell_materials_tf(0.02, edit)
 }
 
 fn cornell_scene(size: u32, tf: TransferFunction) -> Scene {

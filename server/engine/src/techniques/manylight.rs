@@ -455,18 +455,13 @@ impl Manylight {
         if let Some(list) = list {
             self.write_list(engine, scene, list);
         }
-        let mut encoder = self.encoder(engine, "manylight vls");
-        {
-            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("manylight vls"),
-                timestamp_writes: None,
-            });
-            pass.set_pipeline(&engine.manylight.vls);
-            pass.set_bind_group(0, &self.bind_group, &[0]);
-            let paths = list.map_or(BATCH_PATHS, |l| l.len() as u32);
-            pass.dispatch_workgroups(paths.div_ceil(64), 1, 1);
-        }
-        engine.gpu.queue.submit([encoder.finish()]);
+        let paths = list.map_or(BATCH_PATHS, |l| l.len() as u32);
+        self.submit_pass(
+            engine,
+            "manylight vls",
+            &engine.manylight.vls,
+            [paths.div_ceil(64), 1, 1],
+        );
         let bytes = engine.gpu.read_buffer(&self.buffers.scratch)?;
         let mut slots: Vec<VirtualLight> = bytemuck::cast_slice(&bytes).to_vec();
         if let Some(list) = list {
@@ -519,18 +514,13 @@ impl Manylight {
         }
         let layers = slots.map_or(self.count, |l| l.len() as u32);
         if layers > 0 {
-            let mut encoder = self.encoder(engine, "manylight avsm");
-            {
-                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                    label: Some("manylight avsm"),
-                    timestamp_writes: None,
-                });
-                pass.set_pipeline(&engine.manylight.avsm);
-                pass.set_bind_group(0, &self.bind_group, &[0]);
-                let r = self.config.face_res;
-                pass.dispatch_workgroups(r.div_ceil(8), (6 * r).div_ceil(8), layers);
-            }
-            engine.gpu.queue.submit([encoder.finish()]);
+            let r = self.config.face_res;
+            self.submit_pass(
+                engine,
+                "manylight avsm",
+                &engine.manylight.avsm,
+                [r.div_ceil(8), (6 * r).div_ceil(8), layers],
+            );
         }
         // Back to every slot for the gather.
         self.write_params(engine, scene);
@@ -730,6 +720,27 @@ impl Manylight {
         Ok(())
     }
 
+    /// One compute pass of `pipeline` over `groups` workgroups, in its own submission.
+    fn submit_pass(
+        &self,
+        engine: &Engine,
+        label: &str,
+        pipeline: &wgpu::ComputePipeline,
+        groups: [u32; 3],
+    ) {
+        let mut encoder = self.encoder(engine, label);
+        {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some(label),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(pipeline);
+            pass.set_bind_group(0, &self.bind_group, &[0]);
+            pass.dispatch_workgroups(groups[0], groups[1], groups[2]);
+        }
+        engine.gpu.queue.submit([encoder.finish()]);
+    }
+
     fn encoder(&self, engine: &Engine, label: &str) -> wgpu::CommandEncoder {
         engine
             .gpu
@@ -752,16 +763,9 @@ impl Manylight {
     /// gains Π f_g(cos) / f_built(cos) over those vertices (exact; the paper's §5.2 keeps the
     /// lights unweighted).
     fn reweight_phase(&mut self, engine: &Engine, g: f32) {
-        // Each light's path, by vertex: the factor of vertex k builds on vertex k − 1's.
-        let mut by_vertex: HashMap<(u32, u32), usize> = HashMap::new();
-        for (i, light) in self.built_lights.iter().enumerate() {
-            if light.path != u32::MAX {
-                by_vertex.insert((light.path, light.vertices as u32), i);
-            }
-        }
+        // The factor of vertex k builds on vertex k − 1's.
+        let (by_vertex, order) = self.lights_by_vertex();
         let mut factors = vec![1.0f64; self.built_lights.len()];
-        let mut order: Vec<usize> = (0..self.built_lights.len()).collect();
-        order.sort_by_key(|&i| self.built_lights[i].vertices as u32);
         for i in order {
             let light = &self.built_lights[i];
             if light.path == u32::MAX || light.vertices <= 1.0 {
@@ -792,6 +796,20 @@ impl Manylight {
         self.weighted_g = g;
     }
 
+    /// The slot of each light by (path, vertex), and the slots in vertex order (each light
+    /// after the earlier vertices of its path).
+    fn lights_by_vertex(&self) -> (HashMap<(u32, u32), usize>, Vec<usize>) {
+        let mut by_vertex = HashMap::new();
+        for (i, light) in self.built_lights.iter().enumerate() {
+            if light.path != u32::MAX {
+                by_vertex.insert((light.path, light.vertices as u32), i);
+            }
+        }
+        let mut order: Vec<usize> = (0..self.built_lights.len()).collect();
+        order.sort_by_key(|&i| self.built_lights[i].vertices as u32);
+        (by_vertex, order)
+    }
+
     /// The immediate update after a TF edit (the paper's Eq. 6 with our analog distance
     /// sampling, where T_new / p_new · σs_new at a vertex is its new albedo): every light keeps
     /// its position and map, and its power takes Π albedo_new / albedo_old over the vertices of
@@ -806,15 +824,8 @@ impl Manylight {
             let f = x - i as f32;
             [0, 1, 2, 3].map(|k| lut[i][k] + (lut[i + 1][k] - lut[i][k]) * f)
         };
-        let mut by_vertex: HashMap<(u32, u32), usize> = HashMap::new();
-        for (i, light) in self.built_lights.iter().enumerate() {
-            if light.path != u32::MAX {
-                by_vertex.insert((light.path, light.vertices as u32), i);
-            }
-        }
+        let (by_vertex, order) = self.lights_by_vertex();
         let mut factors = vec![[1.0f64; 3]; self.built_lights.len()];
-        let mut order: Vec<usize> = (0..self.built_lights.len()).collect();
-        order.sort_by_key(|&i| self.built_lights[i].vertices as u32);
         for i in order {
             let light = self.built_lights[i];
             if light.path == u32::MAX {

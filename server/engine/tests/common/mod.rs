@@ -160,3 +160,29 @@ pub fn srgb_byte(x: f32) -> u8 {
     };
     (s.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
 }
+
+/// The Cornell phantom's materials (voxlight_volumes::CORNELL_MATERIALS) with a narrow plateau
+/// each, like the app's cornell TF; `edit` may change a material's colour and opacity.
+pub fn cornell_materials_tf(
+    medium_opacity: f32,
+    edit: impl Fn(&str, &mut [f32; 3], &mut f32),
+) -> TransferFunction {
+    let point = |value: f32, color: [f32; 3], opacity: f32| TfPoint {
+        value,
+        color,
+        opacity,
+    };
+    let mut points = vec![point(0.0, [0.0; 3], 0.0), point(0.05, [0.0; 3], 0.0)];
+    for (name, value) in voxlight_volumes::CORNELL_MATERIALS {
+        let (mut color, mut opacity) = match *name {
+            "medium" => ([0.9, 0.9, 0.9], medium_opacity),
+            "left wall" => ([0.85, 0.1, 0.08], 1.0),
+            "right wall" => ([0.1, 0.75, 0.12], 1.0),
+            _ => ([0.85, 0.85, 0.85], 1.0),
+        };
+        edit(name, &mut color, &mut opacity);
+        points.push(point(value - 0.03, color, opacity));
+        points.push(point((value + 0.03).min(1.0), color, opacity));
+    }
+    TransferFunction { points }
+}
