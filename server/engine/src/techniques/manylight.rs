@@ -778,12 +778,19 @@ impl Manylight {
                     factors[previous] * phase_hg(cos, g) / phase_hg(cos, self.built_g).max(1e-30);
             }
         }
+        let factors: Vec<[f64; 3]> = factors.iter().map(|&f| [f; 3]).collect();
+        self.upload_weighted(engine, &factors);
+        self.weighted_g = g;
+    }
+
+    /// Uploads the traced lights with their powers multiplied by `factors` (per slot, rgb).
+    fn upload_weighted(&self, engine: &Engine, factors: &[[f64; 3]]) {
         let lights: Vec<VirtualLight> = self
             .built_lights
             .iter()
-            .zip(&factors)
-            .map(|(light, &factor)| VirtualLight {
-                power: light.power.map(|c| (c as f64 * factor) as f32),
+            .zip(factors)
+            .map(|(light, factor)| VirtualLight {
+                power: [0, 1, 2].map(|k| (light.power[k] as f64 * factor[k]) as f32),
                 ..*light
             })
             .collect();
@@ -793,7 +800,6 @@ impl Manylight {
                 .queue
                 .write_buffer(&self.buffers.vls, 0, bytemuck::cast_slice(&lights));
         }
-        self.weighted_g = g;
     }
 
     /// The slot of each light by (path, vertex), and the slots in vertex order (each light
@@ -848,21 +854,7 @@ impl Manylight {
                 before[k] * ratio
             });
         }
-        let lights: Vec<VirtualLight> = self
-            .built_lights
-            .iter()
-            .zip(&factors)
-            .map(|(light, factor)| VirtualLight {
-                power: [0, 1, 2].map(|k| (light.power[k] as f64 * factor[k]) as f32),
-                ..*light
-            })
-            .collect();
-        if !lights.is_empty() {
-            engine
-                .gpu
-                .queue
-                .write_buffer(&self.buffers.vls, 0, bytemuck::cast_slice(&lights));
-        }
+        self.upload_weighted(engine, &factors);
     }
 
     /// Runs `iterations` gather passes alone (no single scattering) and waits: the cost of
