@@ -61,6 +61,8 @@ async fn two_viewers_share_one_rendering_and_see_each_others_edits() {
     ada.send_json(json!({"type": "quality", "iterations": 4}))
         .await
         .unwrap();
+    // Bob joins after the edit is applied (else he may be welcomed at version 0).
+    assert_eq!(edited_version(&mut ada, "Ada").await, 1);
 
     let mut bob = Client::connect(&server.ws_url()).await.unwrap();
     let joined = bob.hello_with(join(&id, "Bob")).await.unwrap();
