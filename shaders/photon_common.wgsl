@@ -33,7 +33,7 @@ struct PhotonUniforms {
     emitter_count: u32,
     // How segments learn of changed photons: SPATIAL_NONE (any change invalidates every
     // segment), SPATIAL_AXES (the 3×64-bit spatial historygram), SPATIAL_CELLS (a dirty bit per
-    // hash-grid cell, dilated by one cell).
+    // half-size hash cell, dilated by two).
     spatial: u32,
     // Gather rounds: which half of gather_list (and COUNTER_LIST word) is this round's input,
     // and the loop iterations an invocation may run before it keeps its place for the next.
@@ -196,6 +196,18 @@ fn spatial_bins(p: vec3<f32>) -> vec3<u32> {
 fn grid_cell3(p: vec3<f32>) -> vec3<i32> {
     let c = vec3<i32>(floor((p - scene.box_min) / photon.radius));
     return clamp(c, vec3<i32>(0), vec3<i32>(photon.grid_dims) - 1);
+}
+
+// Dirty-cell grid (SPATIAL_CELLS): half the hash cell's edge, so that marking every dirty cell
+// within two of a changed photon's covers its gather radius more tightly than whole cells.
+fn dirty_cell3(p: vec3<f32>) -> vec3<i32> {
+    let c = vec3<i32>(floor((p - scene.box_min) / (0.5 * photon.radius)));
+    return clamp(c, vec3<i32>(0), vec3<i32>(2u * photon.grid_dims) - 1);
+}
+
+fn dirty_index(c: vec3<i32>) -> u32 {
+    let d = 2u * photon.grid_dims;
+    return (u32(c.z) * d.y + u32(c.y)) * d.x + u32(c.x);
 }
 
 fn grid_index(c: vec3<i32>) -> u32 {

@@ -35,8 +35,8 @@ fn spatial_hit(a: vec3<f32>, b: vec3<f32>) -> bool {
     return true;
 }
 
-// Whether any sample of the segment lies in a dirty cell (SPATIAL_CELLS): the cells of changed
-// photons are marked with their 26 neighbours, so this finds every change within the gather
+// Whether any sample of the segment lies in a dirty cell (SPATIAL_CELLS): the half-size cells
+// within two of a changed photon's are marked, so this finds every change within the gather
 // radius of a sample. Visits every lattice sample in [ta, tb) (a superset of those gathered).
 fn cells_hit(pixel: u32, hit: vec2<f32>, ta: f32, tb: f32, dir: vec3<f32>) -> bool {
     let jitter = pixel_jitter(pixel);
@@ -50,7 +50,7 @@ fn cells_hit(pixel: u32, hit: vec2<f32>, ta: f32, tb: f32, dir: vec3<f32>) -> bo
         if (t >= tb) {
             break;
         }
-        let cell = grid_index(grid_cell3(scene.eye + dir * t));
+        let cell = dirty_index(dirty_cell3(scene.eye + dir * t));
         if ((atomicLoad(&counters[COUNTER_DIRTY + cell / 32u]) & (1u << (cell % 32u))) != 0u) {
             return true;
         }

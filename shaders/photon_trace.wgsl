@@ -13,7 +13,9 @@
 // Rust twin: server/engine/src/passes/photon.rs.
 
 // Marks the spatial historygram (3×64 bits) at world position p and, for SPATIAL_CELLS, the
-// dirty bits of p's hash cell and its 26 neighbours (every cell a gather reaching p samples).
+// dirty bits of the half-size cells within two of p's (every one a sample within the gather
+// radius of p can lie in). A bit already set is not written again (dense edits mark the same
+// cells many times).
 fn mark_spatial(p: vec3<f32>) {
     let b = spatial_bins(p);
     for (var axis = 0u; axis < 3u; axis++) {
@@ -22,15 +24,19 @@ fn mark_spatial(p: vec3<f32>) {
         atomicOr(&counters[word], 1u << (bin % 32u));
     }
     if (photon.spatial == SPATIAL_CELLS) {
-        let c = grid_cell3(p);
-        let dims = vec3<i32>(photon.grid_dims);
-        for (var dz = -1; dz <= 1; dz++) {
-            for (var dy = -1; dy <= 1; dy++) {
-                for (var dx = -1; dx <= 1; dx++) {
+        let c = dirty_cell3(p);
+        let dims = vec3<i32>(2u * photon.grid_dims);
+        for (var dz = -2; dz <= 2; dz++) {
+            for (var dy = -2; dy <= 2; dy++) {
+                for (var dx = -2; dx <= 2; dx++) {
                     let n = c + vec3<i32>(dx, dy, dz);
                     if (all(n >= vec3<i32>(0)) && all(n < dims)) {
-                        let cell = grid_index(n);
-                        atomicOr(&counters[COUNTER_DIRTY + cell / 32u], 1u << (cell % 32u));
+                        let cell = dirty_index(n);
+                        let word = COUNTER_DIRTY + cell / 32u;
+                        let bit = 1u << (cell % 32u);
+                        if ((atomicLoad(&counters[word]) & bit) == 0u) {
+                            atomicOr(&counters[word], bit);
+                        }
                     }
                 }
             }

@@ -66,8 +66,9 @@ pub enum Invalidation {
     /// The paper's spatial historygram: 3×64 bits, one 64-bin mask per axis of the positions of
     /// changed photons; a segment is stale when its box grown by the radius meets all three.
     SpatialHistogram,
-    /// A dirty bit per hash-grid cell (dilated by one cell): a segment is stale when one of its
-    /// samples lies in a dirty cell. Finer than the paper's; costs cells/8 bytes.
+    /// A dirty bit per half-size hash cell (dilated by two, the gather radius): a segment is
+    /// stale when one of its samples lies in a dirty cell. Finer than the paper's; costs
+    /// cells bytes.
     DirtyCells,
 }
 
@@ -227,7 +228,8 @@ impl PhotonBudget {
         let gather_list_bytes = 2 * pixels * params.segments as u64 * 4;
         let gather_state_bytes = pixels * params.segments as u64 * size_of::<GatherState>() as u64;
         let accum_bytes = pixels * 16;
-        let counter_bytes = (COUNTER_WORDS as u64 + cells.div_ceil(32)) * 4;
+        // The dirty-cell bits are of half-size cells: 8 per hash cell.
+        let counter_bytes = (COUNTER_WORDS as u64 + (8 * cells).div_ceil(32)) * 4;
         let small = (TF_LUT_SIZE * 16
             + size_of::<SceneUniforms>()
             + size_of::<PhotonUniforms>()
