@@ -26,6 +26,14 @@ struct ManylightParams {
     // shadow-map build builds the maps of the slots work_list[0..list_count] (a TF edit's
     // partial rebuild); when zero, paths first_path.. and every slot.
     list_count: u32,
+    // 1: light paths are tracked against the fixed majorant density_scale (their historygram
+    // then holds exactly the values they read); 0: against the macrocell majorants (for dense
+    // media, where the fixed one would take too many steps; the historygram then holds every
+    // bin of the cells they crossed).
+    fixed_majorant: u32,
+    pad0: u32,
+    pad1: u32,
+    pad2: u32,
 }
 
 const MODE_AVSM_POINT: u32 = 0u;

@@ -21,8 +21,13 @@
 @group(0) @binding(12) var<storage, read> work_list: array<u32>;
 
 // The data bins of every value this path's flights read (tentative collisions and the
-// optical-depth march).
+// optical-depth march), or with macrocell majorants of every cell they crossed.
 var<private> opacity_bins: vec2<u32>;
+
+// The tracking hook (tracking.wgsl): a macrocell majorant depends on every bin of the cell.
+fn track_visit(cell: vec3<u32>) {
+    opacity_bins |= cell_bin_bits(cell);
+}
 
 // Delta tracking against the fixed majorant density_scale · 1 (opacity ≤ 1): unlike the
 // macrocell majorants (tracking.wgsl), it does not depend on the TF, so the path depends on
@@ -157,7 +162,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             let hit = intersect_box(origin, dir, scene.box_min, scene.box_max);
             var event = vec2<f32>(0.0, 0.0);
             if (hit.x < hit.y) {
-                event = delta_track_fixed(origin, dir, max(hit.x, 0.0), hit.y, &rng);
+                if (ml.fixed_majorant != 0u) {
+                    event = delta_track_fixed(origin, dir, max(hit.x, 0.0), hit.y, &rng);
+                } else {
+                    event = delta_track(origin, dir, max(hit.x, 0.0), hit.y, &rng);
+                }
             }
             if (event.y == 0.0) {
                 alive = false;

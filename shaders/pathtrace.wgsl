@@ -13,6 +13,9 @@
 @group(0) @binding(4) var<storage, read_write> accum: array<vec4<f32>>;
 @group(0) @binding(5) var<storage, read> cell_max_opacity: array<f32>;
 
+// The tracking hook (tracking.wgsl): nothing to record here.
+fn track_visit(cell: vec3<u32>) {}
+
 // Paths longer than this are cut (only reached in very dense, almost white media).
 const MAX_BOUNCES: u32 = 1024u;
 // Russian roulette on the path weight starts after this many scattering events.

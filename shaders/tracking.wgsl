@@ -1,5 +1,7 @@
 // Shared pieces: delta (Woodcock) tracking against the macrocell majorants. A pass that
-// includes this also includes macrocell.wgsl and declares its bindings.
+// includes this also includes macrocell.wgsl, declares its bindings and defines
+// `fn track_visit(cell: vec3<u32>)`, called for every macrocell the tracking enters (the
+// virtual lights record the data bins their paths depended on there).
 
 // Step past a cell face so the next lookup lands in the next cell.
 const CELL_NUDGE: f32 = 1e-5;
@@ -13,6 +15,7 @@ fn delta_track(origin: vec3<f32>, dir: vec3<f32>, t0: f32, t1: f32, rng: ptr<fun
             return vec2<f32>(t1, 0.0);
         }
         let cell = cell_of(box_relative(origin + dir * (t + CELL_NUDGE)));
+        track_visit(cell);
         let t_exit = min(cell_exit(origin, dir, cell), t1);
         let majorant = cell_majorant(cell);
         if (majorant <= 0.0) {

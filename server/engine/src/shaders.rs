@@ -40,6 +40,7 @@ pub fn manylight_vls() -> String {
         VOLUME,
         SCENE,
         MACROCELL,
+        TRACKING,
         MANYLIGHT_COMMON,
         MANYLIGHT_VLS,
     ]

@@ -603,3 +603,37 @@ fn the_first_frame_after_a_colour_edit_reweights_the_lights() {
         "re-weighting does not help: {with} vs {without}"
     );
 }
+
+/// In a dense medium light paths are tracked against the macrocell majorants (the fixed one
+/// would take too many steps), with historygrams of whole cells' value ranges: coarser, but a
+/// TF edit's partial rebuild still equals a full rebuild of the same paths.
+#[test]
+fn dense_media_keep_tf_edits_exact_with_macrocell_majorants() {
+    let engine = engine();
+    let (volume, mut s, config) = cornell_setup();
+    s.params.density_scale = 400.0;
+    for tf in [
+        cornell_tf(|n, c, _| {
+            if n == "tall block" {
+                *c = [0.2, 0.35, 0.9];
+            }
+        }),
+        block_removed(),
+    ] {
+        let mut technique = Manylight::new(engine, volume.clone(), &s, config).expect("manylight");
+        technique.rebuild(engine, &s).expect("build");
+        let paths = technique.virtual_light_count().1;
+        let mut edited = s.clone();
+        edited.tf = tf;
+        let change = voxlight_engine::Change::tf(&s.tf, &edited.tf);
+        technique.apply(engine, &edited, &change).expect("apply");
+        let update = technique.update_tf(engine, &edited).expect("update");
+        eprintln!("dense: {update:?}");
+        assert!(!update.full_rebuild);
+        assert!(update.paths_retraced < update.paths, "every path retraced");
+        let mut full = Manylight::new(engine, volume.clone(), &edited, config).expect("manylight");
+        full.rebuild_paths(engine, &edited, Some(paths))
+            .expect("full rebuild of the same paths");
+        assert!(light_set(&technique) == light_set(&full), "lights differ");
+    }
+}

@@ -124,7 +124,8 @@ fn rust_and_wgsl_layouts_agree() {
         "ManylightParams",
         size_of::<ManylightParams>(),
         fields!(ManylightParams: capacity, count, first_path, max_bounces, face_res, nodes, mode, seed,
-            vsl_radius, built_density, power_scale, list_count),
+            vsl_radius, built_density, power_scale, list_count, fixed_majorant, pad0, pad1,
+            pad2),
     );
     assert_layout(
         &gather,

@@ -25,6 +25,10 @@ pub struct ManylightParams {
     pub built_density: f32,
     pub power_scale: f32,
     pub list_count: u32,
+    pub fixed_majorant: u32,
+    pub pad0: u32,
+    pub pad1: u32,
+    pub pad2: u32,
 }
 
 /// Matches `VirtualLight` in manylight_common.wgsl.

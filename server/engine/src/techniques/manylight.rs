@@ -361,6 +361,10 @@ impl Manylight {
             built_density: self.built_density,
             power_scale,
             list_count: 0,
+            fixed_majorant: fixed_majorant(scene, &self.config) as u32,
+            pad0: 0,
+            pad1: 0,
+            pad2: 0,
         }
     }
 
@@ -958,6 +962,21 @@ fn bind_group(engine: &Engine, base: &Progressive, buffers: &Buffers) -> wgpu::B
             ],
         })
 }
+
+/// Whether light paths are tracked against the fixed majorant `density_scale`: it makes their
+/// historygrams exact (only the values they read), but a flight through empty space takes
+/// about density × length steps, so dense media use the macrocell majorants (historygrams of
+/// whole cells' value ranges: an opacity edit then reaches more paths).
+fn fixed_majorant(scene: &Scene, config: &ManylightConfig) -> bool {
+    // The volume's longest side is 1: a crossing is at most √3 long.
+    let steps_per_path =
+        scene.params.density_scale as f64 * 3f64.sqrt() * (config.max_bounces + 1) as f64;
+    steps_per_path <= FIXED_MAJORANT_STEPS
+}
+
+/// Most expected tentative collisions per light path for the fixed majorant (well inside
+/// llvmpipe's share of its loop limit per lane, and cheap on any device).
+const FIXED_MAJORANT_STEPS: f64 = 2048.0;
 
 /// A path's historygrams as kept per path: opacity lo, hi, colour lo, hi.
 fn path_hist(slot: &VirtualLight) -> [u32; 4] {
