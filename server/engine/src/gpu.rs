@@ -158,6 +158,14 @@ impl Gpu {
         self.is_software().then_some(LLVMPIPE_LOOP_LIMIT)
     }
 
+    /// One SIMD lane's safe share of `loop_limit`, less a tenth for the rest of the
+    /// invocation: llvmpipe counts the limit per batch of lanes run in lockstep, and with
+    /// nested loops a batch can run up to the sum of its lanes' counts.
+    pub fn lane_loop_budget(&self) -> Option<u32> {
+        let lanes = self.info.subgroup_max_size.clamp(1, 64);
+        self.loop_limit().map(|limit| (limit - limit / 10) / lanes)
+    }
+
     /// A per-session buffer the queue can write (COPY_DST added), at least 16 bytes.
     pub fn buffer(&self, label: &str, size: u64, usage: wgpu::BufferUsages) -> wgpu::Buffer {
         self.device.create_buffer(&wgpu::BufferDescriptor {

@@ -441,3 +441,27 @@ fn gather_rounds_do_not_change_a_bit() {
         first_difference(&a, &b)
     );
 }
+
+/// Where the device cuts long shader loops short (lavapipe), a density scale whose photon
+/// tracking would exceed that is refused with a clear error instead of silently wrong photons;
+/// elsewhere it is rendered.
+#[test]
+fn dense_media_are_refused_where_tracking_would_be_cut_short() {
+    let volume = engine()
+        .upload_volume(&voxlight_volumes::phantom("cornell", 32).expect("cornell"))
+        .expect("upload");
+    let mut s = cornell_scene(24, cornell_tf(|_, _, _| {}));
+    s.params.density_scale = 100_000.0;
+    let p = params(Invalidation::DirtyCells);
+    let mut photon = Photon::new(engine(), volume, &s, p).expect("photon");
+    let result = photon.recompute(engine(), &s, 1);
+    match engine().gpu.loop_limit() {
+        Some(_) => match result {
+            Err(voxlight_engine::EngineError::InvalidScene(m)) => {
+                assert!(m.contains("density scale"), "{m}")
+            }
+            other => panic!("density 100000 accepted on a loop-limited device: {other:?}"),
+        },
+        None => assert!(result.is_ok(), "{result:?}"),
+    }
+}

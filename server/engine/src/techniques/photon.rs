@@ -491,6 +491,22 @@ impl Photon {
     }
 
     fn write_scene(&self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
+        // A photon path's delta tracking against the fixed majorant takes about density ×
+        // length steps in one shader invocation; past the device's loop limit the path would
+        // be cut short silently, so refuse instead.
+        let diagonal = self.volume.extent.iter().map(|e| e * e).sum::<f32>().sqrt() as f64;
+        let steps = scene.params.density_scale as f64 * diagonal * (self.params.bounces + 1) as f64;
+        if let Some(budget) = engine.gpu.lane_loop_budget()
+            && 2.0 * steps > budget as f64
+        {
+            return Err(EngineError::InvalidScene(format!(
+                "photon: density scale {} needs ~{steps:.0} tracking steps per photon path, more \
+                 than this device ({}) runs in one shader invocation; lower the density scale \
+                 or use another technique",
+                scene.params.density_scale,
+                engine.gpu.adapter_name()
+            )));
+        }
         let uniforms = SceneUniforms::new(scene, &self.volume, self.passes)
             .map_err(EngineError::InvalidScene)?;
         engine
@@ -735,11 +751,7 @@ impl Photon {
         if self.params.gather_budget > 0 {
             return self.params.gather_budget;
         }
-        let lanes = engine.gpu.info.subgroup_max_size.clamp(1, 64);
-        engine
-            .gpu
-            .loop_limit()
-            .map_or(u32::MAX, |limit| (limit - limit / 10) / lanes)
+        engine.gpu.lane_loop_budget().unwrap_or(u32::MAX)
     }
 
     /// One progressive pass: more photons, then every segment gathered from all of them.
