@@ -64,7 +64,7 @@ fn grid_scan(@builtin(local_invocation_id) lid: vec3<u32>) {
             fullest = max(fullest, scan_max[t]);
         }
         atomicStore(&grid_cells[n], running);
-        // The host sizes the gather's chunks by it.
+        // The host checks it against the device's loop limit (the sort's rank loop).
         atomicStore(&counters[COUNTER_MAX_CELL], fullest);
     }
     workgroupBarrier();

@@ -1,6 +1,6 @@
 //! The passes of technique `photon` (shaders/photon_*.wgsl): photon tracing
 //! (`photon_trace.wgsl`), the hash-grid build (`photon_grid.wgsl`: clear, count, scan, scatter,
-//! sort) and gathering + compositing (`photon_gather.wgsl`: mark, gather in chunks, composite). All share one binding layout
+//! sort) and gathering + compositing (`photon_gather.wgsl`: mark, gather in rounds, composite). All share one binding layout
 //! (declared once in `photon_common.wgsl`) and the `#[repr(C)]` records below.
 
 use bytemuck::{Pod, Zeroable};
