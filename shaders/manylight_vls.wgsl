@@ -29,6 +29,9 @@ fn track_visit(cell: vec3<u32>) {
     opacity_bins |= cell_bin_bits(cell);
 }
 
+// Tentative collisions add nothing: their cells' bins are recorded.
+fn track_sample(p: vec3<f32>) {}
+
 // Delta tracking against the fixed majorant density_scale · 1 (opacity ≤ 1): unlike the
 // macrocell majorants (tracking.wgsl), it does not depend on the TF, so the path depends on
 // the TF only through the values it reads, which opacity_bins records. (A few more null

@@ -1,7 +1,8 @@
 // Shared pieces: delta (Woodcock) tracking against the macrocell majorants. A pass that
 // includes this also includes macrocell.wgsl, declares its bindings and defines
 // `fn track_visit(cell: vec3<u32>)`, called for every macrocell the tracking enters (the
-// virtual lights record the data bins their paths depended on there).
+// virtual lights record the data bins their paths depended on there), and
+// `fn track_sample(p: vec3<f32>)`, called at every tentative collision.
 
 // Step past a cell face so the next lookup lands in the next cell.
 const CELL_NUDGE: f32 = 1e-5;
@@ -29,6 +30,7 @@ fn delta_track(origin: vec3<f32>, dir: vec3<f32>, t0: f32, t1: f32, rng: ptr<fun
             continue;
         }
         t += free_flight;
+        track_sample(origin + dir * t);
         if (rng_next(rng) * majorant < medium_at(origin + dir * t).a) {
             return vec2<f32>(t, 1.0);
         }

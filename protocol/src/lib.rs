@@ -430,6 +430,25 @@ pub struct TechniqueDetails {
     /// `manylight`: share of the shadow maps the last TF edit built again, in percent.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub shadow_maps_rebuilt_pct: Option<f32>,
+    /// `irradiance`: entries in the irradiance cache.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cache_entries: Option<u32>,
+    /// `irradiance`: references held by the cache's multi-reference octree.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub octree_references: Option<u64>,
+    /// `irradiance`: share of first scattering events the cache answered recently (0–1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cache_hit_rate: Option<f32>,
+    /// `irradiance`: entries being created.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pending_entries: Option<u32>,
+    /// `irradiance`: whether the cache is used (false with an anisotropic phase function:
+    /// the technique then renders plain Monte Carlo).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cache_active: Option<bool>,
+    /// `irradiance`: share of the entries the last TF edit kept, in percent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cache_entries_kept_pct: Option<f32>,
 }
 
 /// Image encodings of frames.

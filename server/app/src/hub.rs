@@ -355,6 +355,12 @@ fn encode_frame(
         build_ms: technique.build_ms,
         light_paths_retraced_pct: technique.light_paths_retraced_pct,
         shadow_maps_rebuilt_pct: technique.shadow_maps_rebuilt_pct,
+        cache_entries: technique.cache_entries,
+        octree_references: technique.octree_references,
+        cache_hit_rate: technique.cache_hit_rate,
+        pending_entries: technique.pending_entries,
+        cache_active: technique.cache_active,
+        cache_entries_kept_pct: technique.cache_entries_kept_pct,
     };
     let (image, format, quality) = match encoding {
         Encoding::Png => (

@@ -66,6 +66,7 @@ pub struct Engine {
     pub photon: passes::photon::PhotonPass,
     pub tonemap: passes::tonemap::TonemapPass,
     pub manylight: passes::manylight::ManylightPasses,
+    pub irradiance: passes::irradiance::IrradiancePasses,
     /// Most GPU bytes one session may allocate (besides the shared volume texture).
     pub session_budget: u64,
 }
@@ -82,6 +83,7 @@ impl Engine {
         let photon = passes::photon::PhotonPass::new(&gpu);
         let tonemap = passes::tonemap::TonemapPass::new(&gpu);
         let manylight = passes::manylight::ManylightPasses::new(&gpu);
+        let irradiance = passes::irradiance::IrradiancePasses::new(&gpu);
         gpu.check()?;
         let session_budget = gpu.limits.max_buffer_size.min(2 << 30);
         Ok(Self {
@@ -91,6 +93,7 @@ impl Engine {
             photon,
             tonemap,
             manylight,
+            irradiance,
             session_budget,
         })
     }

@@ -72,6 +72,12 @@ impl Renderer {
                 scene,
                 Default::default(),
             )?),
+            "irradiance" => Box::new(crate::techniques::irradiance::Irradiance::new(
+                engine,
+                volume.clone(),
+                scene,
+                Default::default(),
+            )?),
             other => return Err(EngineError::UnknownTechnique(other.to_owned())),
         };
         Self::with_technique(engine, technique, volume, scene)

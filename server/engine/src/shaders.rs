@@ -7,6 +7,7 @@ pub const SCENE: &str = include_str!("../../../shaders/scene.wgsl");
 pub const LIGHTS: &str = include_str!("../../../shaders/lights.wgsl");
 pub const MACROCELL: &str = include_str!("../../../shaders/macrocell.wgsl");
 pub const TRACKING: &str = include_str!("../../../shaders/tracking.wgsl");
+pub const PATH: &str = include_str!("../../../shaders/path.wgsl");
 pub const MARCH: &str = include_str!("../../../shaders/march.wgsl");
 pub const MANYLIGHT_COMMON: &str = include_str!("../../../shaders/manylight_common.wgsl");
 pub const MANYLIGHT_VLS: &str = include_str!("../../../shaders/manylight_vls.wgsl");
@@ -18,6 +19,12 @@ pub const PHOTON_COMMON: &str = include_str!("../../../shaders/photon_common.wgs
 pub const PHOTON_TRACE: &str = include_str!("../../../shaders/photon_trace.wgsl");
 pub const PHOTON_GRID: &str = include_str!("../../../shaders/photon_grid.wgsl");
 pub const PHOTON_GATHER: &str = include_str!("../../../shaders/photon_gather.wgsl");
+pub const IRRADIANCE_COMMON: &str = include_str!("../../../shaders/irradiance_common.wgsl");
+pub const IRRADIANCE_RENDER: &str = include_str!("../../../shaders/irradiance_render.wgsl");
+pub const IRRADIANCE_CREATE: &str = include_str!("../../../shaders/irradiance_create.wgsl");
+pub const IRRADIANCE_REQUESTS: &str = include_str!("../../../shaders/irradiance_requests.wgsl");
+pub const IRRADIANCE_UPDATE: &str = include_str!("../../../shaders/irradiance_update.wgsl");
+pub const IRRADIANCE_PRIORITY: &str = include_str!("../../../shaders/irradiance_priority.wgsl");
 pub const TONEMAP: &str = include_str!("../../../shaders/tonemap.wgsl");
 
 /// The raymarch pass with its shared pieces.
@@ -28,7 +35,7 @@ pub fn raymarch() -> String {
 /// The path tracer with its shared pieces.
 pub fn pathtrace() -> String {
     [
-        COMMON, VOLUME, SCENE, MACROCELL, TRACKING, LIGHTS, PATHTRACE,
+        COMMON, VOLUME, SCENE, MACROCELL, TRACKING, LIGHTS, PATH, PATHTRACE,
     ]
     .concat()
 }
@@ -89,6 +96,25 @@ pub fn photon_gather() -> String {
     [COMMON, VOLUME, SCENE, PHOTON_COMMON, PHOTON_GATHER].concat()
 }
 
+/// The passes of technique `irradiance`: each is the shared pieces, the technique's common
+/// declarations and the pass (`IRRADIANCE_RENDER`, `_CREATE`, `_REQUESTS`, `_UPDATE`,
+/// `_PRIORITY`).
+pub fn irradiance(pass: &str) -> String {
+    [
+        COMMON,
+        VOLUME,
+        SCENE,
+        MACROCELL,
+        TRACKING,
+        MARCH,
+        LIGHTS,
+        PATH,
+        IRRADIANCE_COMMON,
+        pass,
+    ]
+    .concat()
+}
+
 pub fn tonemap() -> String {
     TONEMAP.to_owned()
 }
@@ -105,5 +131,10 @@ pub fn all() -> Vec<(&'static str, String)> {
         ("manylight_vls", manylight_vls()),
         ("manylight_avsm", manylight_avsm()),
         ("manylight_gather", manylight_gather()),
+        ("irradiance_render", irradiance(IRRADIANCE_RENDER)),
+        ("irradiance_create", irradiance(IRRADIANCE_CREATE)),
+        ("irradiance_requests", irradiance(IRRADIANCE_REQUESTS)),
+        ("irradiance_update", irradiance(IRRADIANCE_UPDATE)),
+        ("irradiance_priority", irradiance(IRRADIANCE_PRIORITY)),
     ]
 }

@@ -41,6 +41,15 @@ pub struct TechniqueStats {
     /// again by the last TF edit (None before any).
     pub light_paths_retraced_pct: Option<f32>,
     pub shadow_maps_rebuilt_pct: Option<f32>,
+    /// `irradiance`: cache entries, references in its octree, the recent cache hit rate (0–1),
+    /// entries being created, whether the cache is in use (not with an anisotropic phase
+    /// function), and the share of entries the last TF edit kept (None before any).
+    pub cache_entries: Option<u32>,
+    pub octree_references: Option<u64>,
+    pub cache_hit_rate: Option<f32>,
+    pub pending_entries: Option<u32>,
+    pub cache_active: Option<bool>,
+    pub cache_entries_kept_pct: Option<f32>,
 }
 
 pub trait Technique: Send {

@@ -3,6 +3,7 @@
 
 use std::mem::{offset_of, size_of};
 
+use voxlight_engine::passes::irradiance::{CacheEntry, DispatchInfo, IrradianceParams, Request};
 use voxlight_engine::passes::manylight::{ManylightParams, VirtualLight};
 use voxlight_engine::passes::tonemap::ToneParams;
 use voxlight_engine::scene_gpu::{GpuLight, SceneUniforms};
@@ -134,4 +135,43 @@ fn rust_and_wgsl_layouts_agree() {
         fields!(VirtualLight: position, tau, power, vertices, direction, path, opacity_lo,
             opacity_hi, colour_lo, colour_hi, value, pad0, pad1, pad2),
     );
+    for pass in [
+        shaders::IRRADIANCE_RENDER,
+        shaders::IRRADIANCE_CREATE,
+        shaders::IRRADIANCE_REQUESTS,
+        shaders::IRRADIANCE_UPDATE,
+        shaders::IRRADIANCE_PRIORITY,
+    ] {
+        let module = parse_and_validate("irradiance", &shaders::irradiance(pass));
+        assert_layout(
+            &module,
+            "IrradianceParams",
+            size_of::<IrradianceParams>(),
+            fields!(IrradianceParams: root_min, root_edge, delta, gamma, epsilon, min_radius,
+                max_radius, update_threshold, frame, flags, blocks_x, blocks_y, block_count,
+                node_count, refs_offset, node_claim_offset, node_held_offset, block_claim_offset,
+                block_held_offset, entry_capacity, max_pending, pending, min_samples, max_samples,
+                bounces, priority_offset, voxel, pad0, pad1, pad2),
+        );
+        assert_layout(
+            &module,
+            "CacheEntry",
+            size_of::<CacheEntry>(),
+            fields!(CacheEntry: position, key, normal, samples, irradiance, opacity_lo, sigma,
+                opacity_hi, colour_lo, colour_hi, pad0),
+        );
+        assert_layout(
+            &module,
+            "Request",
+            size_of::<Request>(),
+            fields!(Request: position, key, normal, lock, sums, count, state, opacity_lo,
+                opacity_hi, colour_lo, colour_hi, pad0, pad1, entry),
+        );
+        assert_layout(
+            &module,
+            "DispatchInfo",
+            size_of::<DispatchInfo>(),
+            fields!(DispatchInfo: first, count, round, pad0),
+        );
+    }
 }

@@ -6,7 +6,7 @@
 
 use bytemuck::{Pod, Zeroable};
 
-use super::{storage_entry, uniform_entry, volume_entry};
+use super::{layout_pipeline, storage_entry, uniform_entry, volume_entry};
 use crate::Gpu;
 
 /// Matches `ManylightParams` in manylight_common.wgsl.
@@ -153,20 +153,8 @@ impl ManylightPasses {
             bind_group_layouts: &[Some(&layout)],
             immediate_size: 0,
         });
-        let pipeline = |label: &str, source: String| {
-            let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some(label),
-                source: wgpu::ShaderSource::Wgsl(source.into()),
-            });
-            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(label),
-                layout: Some(&pipeline_layout),
-                module: &module,
-                entry_point: Some("main"),
-                compilation_options: Default::default(),
-                cache: None,
-            })
-        };
+        let pipeline =
+            |label: &str, source: String| layout_pipeline(gpu, label, &source, &pipeline_layout);
         Self {
             vls: pipeline("manylight vls", crate::shaders::manylight_vls()),
             avsm: pipeline("manylight avsm", crate::shaders::manylight_avsm()),

@@ -2,6 +2,7 @@
 //! `#[repr(C)]` structs it binds.
 
 pub mod estimator;
+pub mod irradiance;
 pub mod manylight;
 pub mod pathtrace;
 pub mod photon;
@@ -71,15 +72,44 @@ pub(crate) fn compute_pipeline(
         bind_group_layouts: &[Some(&layout)],
         immediate_size: 0,
     });
-    let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-        label: Some(label),
-        layout: Some(&pipeline_layout),
-        module: &module,
-        entry_point: Some("main"),
-        compilation_options: Default::default(),
-        cache: None,
-    });
-    (pipeline, layout)
+    (
+        module_pipeline(gpu, label, &module, &pipeline_layout),
+        layout,
+    )
+}
+
+/// A compute pipeline from a composed shader source (entry point `main`) with a pipeline
+/// layout that several passes share.
+pub(crate) fn layout_pipeline(
+    gpu: &crate::Gpu,
+    label: &str,
+    source: &str,
+    pipeline_layout: &wgpu::PipelineLayout,
+) -> wgpu::ComputePipeline {
+    let module = gpu
+        .device
+        .create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some(label),
+            source: wgpu::ShaderSource::Wgsl(source.into()),
+        });
+    module_pipeline(gpu, label, &module, pipeline_layout)
+}
+
+fn module_pipeline(
+    gpu: &crate::Gpu,
+    label: &str,
+    module: &wgpu::ShaderModule,
+    pipeline_layout: &wgpu::PipelineLayout,
+) -> wgpu::ComputePipeline {
+    gpu.device
+        .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some(label),
+            layout: Some(pipeline_layout),
+            module,
+            entry_point: Some("main"),
+            compilation_options: Default::default(),
+            cache: None,
+        })
 }
 
 /// One compute pass running `pipeline` over a width × height image in TILE² workgroups.

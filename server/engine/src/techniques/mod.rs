@@ -1,5 +1,6 @@
 //! The rendering techniques. Each owns only per-session buffers; pipelines live in `Engine`.
 
+pub mod irradiance;
 pub mod manylight;
 pub mod photon;
 pub mod progressive;
@@ -17,6 +18,10 @@ pub const ALL: &[(&str, &str)] = &[
     (
         "manylight",
         "Single scattering plus multiple scattering from virtual spherical lights with transmittance cached in adaptive volumetric shadow maps (Weber et al. 2013)",
+    ),
+    (
+        "irradiance",
+        "Monte-Carlo volume rendering whose first scattering event reads a parallel irradiance cache built while rendering (Khlebnikov et al. 2014), with multiple scattering; TF edits keep the entries they cannot change (isotropic phase function)",
     ),
     (
         "photon",

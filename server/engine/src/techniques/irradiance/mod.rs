@@ -1,0 +1,1518 @@
+//! Technique `irradiance` (Khlebnikov et al. 2014, ../shared/papers/parallel-irradiance-caching.txt):
+//! Monte-Carlo volume rendering in the style of Exposure Render whose first scattering event
+//! takes its irradiance from a cache built while rendering. Three procedures share each frame
+//! (§4.1), in the paper's time fractions driven by the cache hit rate (§6): rendering (16 × 8
+//! blocks, optionally drawn by "expected gain" priorities), cache-entry creation (the 7-point
+//! estimate with virtual extinction coefficients and ellipsoidal zones oriented along the
+//! extinction gradient, §4.2) and cache update (radius reduction where overlapping entries
+//! disagree, §4.3). Entries live in a multi-reference octree (§4.4, built on the CPU,
+//! `octree`); object- or screen-space locking keeps neighbouring misses from creating the same
+//! entry (§5). The paper frames its procedures in Softshell's persistent megakernel; here each
+//! is a compute pass and the frame's fractions become dispatch counts ("fixing the maximum
+//! number of iterations per procedure in a frame-based approach", as the paper allows).
+//!
+//! Beyond the paper:
+//! - the cached irradiance includes multiple scattering (its future work): entries' samples are
+//!   full paths (up to `bounces` − 1 more events), so the picture converges to `pathtrace`'s for
+//!   an isotropic phase function; `bounces` = 1 is the paper's single scattering;
+//! - each entry carries the historygrams of the data bins its estimate depended on (through
+//!   extinction: every macrocell its rays crossed; through albedo: its paths' vertices), so a TF
+//!   edit drops only the entries it can change (`Invalidation::Historygram`);
+//! - the seven estimation points share their random numbers, which makes the irradiance ratios
+//!   of Eq. 6 far steadier than independent estimates;
+//! - every step runs in a fixed order, so a run with a fixed schedule is repeatable.
+//!
+//! The cache assumes an isotropic phase function at the first scattering event (as the paper);
+//! with |g| > 0.001 the technique renders plain MCVR and says so in its stats.
+
+pub mod octree;
+
+use std::collections::VecDeque;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use voxlight_protocol::TransferFunction;
+
+use crate::passes::irradiance::{
+    BLOCK_HEIGHT, BLOCK_WIDTH, COUNTER_CREATED, COUNTER_DROPPED, COUNTER_ENTRIES, COUNTER_HITS,
+    COUNTER_ISSUED, COUNTER_LOST, COUNTER_MISSES, COUNTER_PENDING, COUNTER_REDUCTIONS,
+    COUNTER_WORDS, CacheEntry, DISPATCH_STRIDE, DispatchInfo, FLAG_CACHE, FLAG_NO_CREATION,
+    FLAG_SAMPLED_HISTORYGRAMS, FLAG_SCREEN_LOCKING, IrradianceBindings, IrradianceParams,
+    PRIORITY_UNSAMPLED, Request, UPDATE_WORKGROUP,
+};
+use crate::technique::{StepReport, Technique, TechniqueStats};
+use crate::techniques::progressive::{Estimator, Progressive, accum_bytes};
+use crate::tf::{opacity_query_historygram, query_historygram};
+use crate::{Change, Engine, EngineError, GpuVolume, Scene};
+use octree::{Octree, zone_half_extent};
+
+/// Which primitive a cache miss locks before it may request a new entry (§5).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Locking {
+    /// The deepest octree node holding the miss.
+    Object,
+    /// The miss's 16 × 8 block of the image, after a rejection test on the block's share of
+    /// misses.
+    Screen,
+}
+
+/// What a TF edit does to the cache.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Invalidation {
+    /// Drop the entries whose historygrams meet the edit's query historygrams.
+    Historygram,
+    /// Drop every entry (what the paper does).
+    Clear,
+}
+
+/// What an entry's opacity historygram records of the rays its estimate marched or tracked.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Historygrams {
+    /// The bins of every value sampled (every voxel-step of a marched shadow ray, every
+    /// tentative collision of a tracked one), and all bins of macrocells skipped as empty: as
+    /// the historygram paper records a ray-marched path. A feature thinner than the samples'
+    /// spacing can be missed.
+    Samples,
+    /// All bins any value of each macrocell crossed can take: conservative (an edit that
+    /// could change the estimate always drops it), but coarse.
+    Cells,
+}
+
+/// The knobs of `irradiance`; the defaults are the paper's Table 1.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct IrradianceConfig {
+    /// Use the cache (false: plain MCVR with the same estimator, the paper's baseline).
+    pub cache: bool,
+    pub locking: Locking,
+    /// Draw the blocks to render by "expected gain" (Eq. 12) instead of in turn.
+    pub priorities: bool,
+    /// Most scattering events on a camera path (1: single scattering, as in the paper).
+    pub bounces: u32,
+    /// γ: accepted relative error of an entry's irradiance estimate (Eq. 5).
+    pub gamma: f32,
+    /// ε: accepted relative extrapolation error at a zone's edge (Eq. 9–10).
+    pub epsilon: f32,
+    /// Δ, the offset of the six extra estimation points, in voxels.
+    pub delta_voxels: f32,
+    pub min_radius_voxels: f32,
+    pub max_radius_voxels: f32,
+    /// Relative disagreement of overlapping entries the update resolves.
+    pub update_threshold: f32,
+    /// Share of a frame for creating entries (min, max) and for updating them (min, max), and
+    /// the exponent of the hit rate that moves them (§6).
+    pub creation_fraction: (f32, f32),
+    pub update_fraction: (f32, f32),
+    pub fraction_exponent: f32,
+    /// Entries being created at once (None: the paper's 1000 scaled to the viewport from
+    /// 1280 × 720, at least 16).
+    pub max_pending: Option<u32>,
+    pub entry_capacity: u32,
+    /// Samples per estimation point before Eq. 5 may stop the estimate, and at most.
+    pub min_samples: u32,
+    pub max_samples: u32,
+    /// Frames of this length (equal-time comparisons): rendering gets what creation and update
+    /// leave, as many blocks as fit. None: one image's worth of blocks per frame.
+    pub frame_time: Option<Duration>,
+    pub invalidation: Invalidation,
+    pub historygrams: Historygrams,
+    /// How often the octree is rebuilt with the radii the update shrank.
+    pub rebuild_interval: Duration,
+    /// Time over which the hit rate is measured.
+    pub hit_rate_window: Duration,
+    /// Creation and update rounds per frame instead of time fractions (repeatable runs).
+    pub fixed_rounds: Option<(u32, u32)>,
+    /// The octree starts complete to this depth (8^depth object-space locks).
+    pub lock_depth: u32,
+}
+
+impl Default for IrradianceConfig {
+    fn default() -> Self {
+        Self {
+            cache: true,
+            locking: Locking::Object,
+            priorities: true,
+            bounces: DEFAULT_BOUNCES,
+            gamma: 0.1,
+            epsilon: 0.1,
+            delta_voxels: 2.0,
+            min_radius_voxels: 0.01,
+            max_radius_voxels: 16.0,
+            update_threshold: 0.1,
+            creation_fraction: (0.05, 0.15),
+            update_fraction: (0.01, 0.02),
+            fraction_exponent: 3.0,
+            max_pending: None,
+            entry_capacity: 32768,
+            min_samples: 16,
+            max_samples: 256,
+            frame_time: None,
+            invalidation: Invalidation::Historygram,
+            historygrams: Historygrams::Samples,
+            rebuild_interval: Duration::from_millis(1000),
+            hit_rate_window: Duration::from_millis(100),
+            fixed_rounds: None,
+            lock_depth: 4,
+        }
+    }
+}
+
+/// Scattering events a camera path may have by default (as `pathtrace`, MAX_BOUNCES in
+/// path.wgsl).
+pub const DEFAULT_BOUNCES: u32 = 1024;
+
+/// |g| above which the cache (isotropic at the first event) is not used.
+const ISOTROPIC_G: f32 = 1e-3;
+
+/// Render passes per frame at most (a block is rendered at most this often in one frame).
+const MAX_RENDER_PASSES: usize = 8;
+/// Creation and update rounds per frame at most.
+const MAX_CREATE_ROUNDS: u32 = 48;
+const MAX_UPDATE_ROUNDS: u32 = 16;
+/// Dispatch descriptors per frame.
+const DISPATCH_SLOTS: u32 = 128;
+/// Workgroups one dispatch may have along x.
+const MAX_WORKGROUPS: usize = 65535;
+/// The paper's pending entries and the viewport they were set for (Table 1).
+const PAPER_PENDING: f64 = 1000.0;
+const PAPER_PIXELS: f64 = 1280.0 * 720.0;
+
+/// What the cache holds and did; `stats` and benchmarks report it.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct CacheStats {
+    pub entries: u32,
+    pub references: u64,
+    pub octree_nodes: u32,
+    pub pending: u32,
+    /// Hit rate over the last `hit_rate_window`.
+    pub hit_rate: f32,
+    pub hits: u64,
+    pub misses: u64,
+    pub created: u64,
+    pub requests_issued: u64,
+    /// Requests refused because the pending list or the cache was full.
+    pub requests_dropped: u64,
+    pub radius_reductions: u64,
+    /// Whether the cache is in use (not with an anisotropic phase function or `cache` off).
+    pub active: bool,
+    /// The last TF edit: entries before it and entries kept.
+    pub last_edit: Option<(u32, u32)>,
+    pub creation_rounds: u64,
+    pub update_rounds: u64,
+}
+
+/// A copy of the cache (benchmarks compare TF-edit strategies from one state).
+#[derive(Debug, Clone)]
+pub struct CacheSnapshot {
+    pub entries: Vec<CacheEntry>,
+    pub radii: Vec<f32>,
+}
+
+/// Per-frame times of the three procedures.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct FrameTimes {
+    pub render: Duration,
+    pub create: Duration,
+    pub update: Duration,
+    /// The requests pass, read-backs and the octree upload.
+    pub bookkeeping: Duration,
+    pub blocks_rendered: u32,
+}
+
+impl FrameTimes {
+    pub fn total(&self) -> Duration {
+        self.render + self.create + self.update + self.bookkeeping
+    }
+}
+
+/// GPU buffers whose size depends on the viewport.
+struct PixelBuffers {
+    pixel_aux: wgpu::Buffer,
+    blocks: wgpu::Buffer,
+    words: wgpu::Buffer,
+}
+
+/// Buffers that hold the cache (they survive viewport changes).
+struct CacheBuffers {
+    params: wgpu::Buffer,
+    dispatch: wgpu::Buffer,
+    entries: wgpu::Buffer,
+    radii: wgpu::Buffer,
+    octree: wgpu::Buffer,
+    requests: wgpu::Buffer,
+    cell_bins: wgpu::Buffer,
+}
+
+/// How the image is divided into blocks, and where `words` and `blocks` keep what.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Layout {
+    blocks_x: u32,
+    blocks_y: u32,
+    block_count: u32,
+    node_capacity: u32,
+    ref_capacity: u32,
+    max_pending: u32,
+}
+
+impl Layout {
+    fn new(width: u32, height: u32, config: &IrradianceConfig) -> Self {
+        let blocks_x = width.div_ceil(BLOCK_WIDTH);
+        let blocks_y = height.div_ceil(BLOCK_HEIGHT);
+        let auto_pending = (PAPER_PENDING * (width as f64 * height as f64) / PAPER_PIXELS)
+            .round()
+            .clamp(16.0, PAPER_PENDING) as u32;
+        let min_nodes = (8u32.pow(config.lock_depth.min(6) + 1) - 1) / 7;
+        Self {
+            blocks_x,
+            blocks_y,
+            block_count: blocks_x * blocks_y,
+            node_capacity: min_nodes.saturating_add(config.entry_capacity.saturating_mul(4)),
+            ref_capacity: config.entry_capacity.saturating_mul(8),
+            max_pending: config.max_pending.unwrap_or(auto_pending).max(1),
+        }
+    }
+
+    fn node_claim_offset(&self) -> u32 {
+        COUNTER_WORDS as u32
+    }
+    fn node_held_offset(&self) -> u32 {
+        self.node_claim_offset().saturating_add(self.node_capacity)
+    }
+    fn block_claim_offset(&self) -> u32 {
+        self.node_held_offset().saturating_add(self.node_capacity)
+    }
+    fn block_held_offset(&self) -> u32 {
+        self.block_claim_offset().saturating_add(self.block_count)
+    }
+    fn words(&self) -> u32 {
+        self.block_held_offset().saturating_add(self.block_count)
+    }
+    /// Blocks the render list holds (each pass at most every block).
+    fn list_capacity(&self) -> u32 {
+        self.block_count * MAX_RENDER_PASSES as u32
+    }
+
+    /// `words` as after a reset: counters zero, no claims, no locks held.
+    fn fresh_words(&self, entries: u32) -> Vec<u32> {
+        let mut words = vec![0u32; self.words() as usize];
+        words[COUNTER_ENTRIES] = entries;
+        let claims = |w: &mut Vec<u32>, at: u32, n: u32| {
+            w[at as usize..(at + n) as usize].fill(u32::MAX);
+        };
+        claims(&mut words, self.node_claim_offset(), self.node_capacity);
+        claims(&mut words, self.block_claim_offset(), self.block_count);
+        words
+    }
+}
+
+/// GPU bytes of the technique's own buffers for a viewport (besides the shared volume).
+pub fn irradiance_bytes(width: u32, height: u32, config: &IrradianceConfig, cells: usize) -> u64 {
+    let layout = Layout::new(width, height, config);
+    let pixels = width as u64 * height as u64;
+    let entries = config.entry_capacity as u64;
+    // Nodes and references as Layout sizes them, without its u32 saturation.
+    let (nodes, refs) = (entries * 4 + 37449, entries * 8);
+    accum_bytes(width, height)
+        + pixels * 16
+        + (layout.list_capacity() + layout.block_count) as u64 * 4
+        + (COUNTER_WORDS as u64 + 2 * nodes + 2 * layout.block_count as u64) * 4
+        + entries * (size_of::<CacheEntry>() as u64 + 24)
+        + (nodes * 4 + refs) * 4
+        + layout.max_pending as u64 * size_of::<Request>() as u64
+        + cells as u64 * 8
+        + DISPATCH_SLOTS as u64 * DISPATCH_STRIDE
+}
+
+/// What the CPU keeps of every entry (for the octree and TF edits).
+#[derive(Debug, Clone, Copy)]
+struct Mirror {
+    entry: CacheEntry,
+    radii: [f32; 6],
+}
+
+pub struct Irradiance {
+    base: Progressive,
+    config: IrradianceConfig,
+    layout: Layout,
+    cache: CacheBuffers,
+    pixels: PixelBuffers,
+    bind_group: wgpu::BindGroup,
+    octree: Octree,
+    root_min: [f32; 3],
+    root_edge: f32,
+    voxel: f32,
+    mirror: Vec<Mirror>,
+    pending: u32,
+    /// The octree has room for no more entries.
+    full: bool,
+    octree_dirty: bool,
+    last_rebuild: Instant,
+    reductions_at_rebuild: u64,
+    frame: u32,
+    /// Blocks rendered since the picture restarted.
+    block_renders: u64,
+    /// Next block of the round-robin order.
+    cursor: u32,
+    priorities: Vec<f32>,
+    /// Time owed to creation and update (seconds; may go negative).
+    creation_credit: f64,
+    update_credit: f64,
+    /// Measured costs: per block rendered, per request and creation round, per update round.
+    block_cost: Option<f64>,
+    request_round_cost: Option<f64>,
+    update_round_cost: Option<f64>,
+    /// (time, hits, misses) of recent frames.
+    hit_history: VecDeque<(Instant, u64, u64)>,
+    counters: [u32; COUNTER_WORDS],
+    stats: CacheStats,
+    /// Density scale and g the cache's entries were estimated with.
+    cache_density: f32,
+    cache_g: f32,
+    cache_bounces: u32,
+    pub last_frame: FrameTimes,
+    lcg: u64,
+}
+
+impl Irradiance {
+    pub fn new(
+        engine: &Engine,
+        volume: Arc<GpuVolume>,
+        scene: &Scene,
+        config: IrradianceConfig,
+    ) -> Result<Self, EngineError> {
+        validate(&config)?;
+        let (width, height) = (scene.viewport.width, scene.viewport.height);
+        let cells = volume.ranges.cell_count();
+        let needed = irradiance_bytes(width, height, &config, cells);
+        if needed > engine.session_budget {
+            return Err(EngineError::OutOfMemory {
+                needed,
+                available: engine.session_budget,
+            });
+        }
+        let layout = Layout::new(width, height, &config);
+        let binding_limit = engine.gpu.limits.max_storage_buffer_binding_size;
+        let largest = [
+            config.entry_capacity as u64 * size_of::<CacheEntry>() as u64,
+            (layout.node_capacity as u64 * 4 + layout.ref_capacity as u64) * 4,
+            layout.words() as u64 * 4,
+            layout.max_pending as u64 * size_of::<Request>() as u64,
+        ]
+        .into_iter()
+        .max()
+        .unwrap_or(0);
+        if largest > binding_limit {
+            return Err(EngineError::OutOfMemory {
+                needed: largest,
+                available: binding_limit,
+            });
+        }
+        let extent = volume.extent;
+        let voxel = (0..3)
+            .map(|k| extent[k] / volume.dims[k] as f32)
+            .fold(f32::INFINITY, f32::min);
+        let root_edge = extent.iter().fold(0.0f32, |a, &b| a.max(b)) * (1.0 + 1e-4);
+        let root_min = [-0.5 * root_edge; 3];
+        let bins: Vec<[u32; 2]> = volume
+            .ranges
+            .bin_masks()
+            .iter()
+            .map(|&m| [m as u32, (m >> 32) as u32])
+            .collect();
+        let base = Progressive::new(engine, Estimator::Pathtrace, volume, scene)?;
+        let gpu = &engine.gpu;
+        let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
+        let cache = CacheBuffers {
+            params: gpu.buffer(
+                "irradiance params",
+                size_of::<IrradianceParams>() as u64,
+                wgpu::BufferUsages::UNIFORM,
+            ),
+            dispatch: gpu.buffer(
+                "irradiance dispatch",
+                DISPATCH_SLOTS as u64 * DISPATCH_STRIDE,
+                wgpu::BufferUsages::UNIFORM,
+            ),
+            entries: gpu.buffer(
+                "irradiance entries",
+                config.entry_capacity as u64 * size_of::<CacheEntry>() as u64,
+                storage,
+            ),
+            radii: gpu.buffer(
+                "irradiance radii",
+                config.entry_capacity as u64 * 24,
+                storage,
+            ),
+            octree: gpu.buffer(
+                "irradiance octree",
+                (layout.node_capacity as u64 * 4 + layout.ref_capacity as u64) * 4,
+                wgpu::BufferUsages::STORAGE,
+            ),
+            requests: gpu.buffer(
+                "irradiance requests",
+                layout.max_pending as u64 * size_of::<Request>() as u64,
+                storage,
+            ),
+            cell_bins: gpu.buffer(
+                "irradiance cell bins",
+                (bins.len() * 8) as u64,
+                wgpu::BufferUsages::STORAGE,
+            ),
+        };
+        gpu.queue
+            .write_buffer(&cache.cell_bins, 0, bytemuck::cast_slice(&bins));
+        let pixels = pixel_buffers(engine, width, height, &layout);
+        let bind_group = bind_group(engine, &base, &cache, &pixels);
+        let mut technique = Self {
+            base,
+            config,
+            layout,
+            cache,
+            pixels,
+            bind_group,
+            octree: Octree::new(
+                root_min,
+                root_edge,
+                config.lock_depth,
+                octree::MAX_DEPTH - 1,
+            ),
+            root_min,
+            root_edge,
+            voxel,
+            mirror: Vec::new(),
+            pending: 0,
+            full: false,
+            octree_dirty: true,
+            last_rebuild: Instant::now(),
+            reductions_at_rebuild: 0,
+            frame: 0,
+            block_renders: 0,
+            cursor: 0,
+            priorities: Vec::new(),
+            creation_credit: 0.0,
+            update_credit: 0.0,
+            block_cost: None,
+            request_round_cost: None,
+            update_round_cost: None,
+            hit_history: VecDeque::new(),
+            counters: [0; COUNTER_WORDS],
+            stats: CacheStats::default(),
+            cache_density: scene.params.density_scale,
+            cache_g: scene.params.g,
+            cache_bounces: config.bounces,
+            last_frame: FrameTimes::default(),
+            lcg: 0x853c_49e6_748f_ea9b ^ scene.seed as u64,
+        };
+        technique.reset_words(engine);
+        technique.upload_octree(engine)?;
+        technique.restart(engine);
+        Ok(technique)
+    }
+
+    pub fn config(&self) -> IrradianceConfig {
+        self.config
+    }
+
+    pub fn cache_stats(&self) -> CacheStats {
+        let mut stats = self.stats;
+        stats.entries = self.mirror.len() as u32;
+        stats.references = self.octree.reference_count() as u64;
+        stats.octree_nodes = self.octree.node_count() as u32;
+        stats.pending = self.pending;
+        stats.hit_rate = self.hit_rate() as f32;
+        stats
+    }
+
+    /// The cache's entries, as created (radii as the update left them at the last rebuild).
+    pub fn entries(&self) -> Vec<CacheEntry> {
+        self.mirror.iter().map(|m| m.entry).collect()
+    }
+
+    fn cache_active(&self, scene: &Scene) -> bool {
+        self.config.cache && scene.params.g.abs() <= ISOTROPIC_G
+    }
+
+    fn write_params(&self, engine: &Engine, scene: &Scene) {
+        let mut flags = 0;
+        if self.cache_active(scene) {
+            flags |= FLAG_CACHE;
+        }
+        if self.config.locking == Locking::Screen {
+            flags |= FLAG_SCREEN_LOCKING;
+        }
+        if self.full {
+            flags |= FLAG_NO_CREATION;
+        }
+        if self.config.historygrams == Historygrams::Samples {
+            flags |= FLAG_SAMPLED_HISTORYGRAMS;
+        }
+        let refs_offset = 4 * self.octree.node_count() as u32;
+        let params = IrradianceParams {
+            root_min: self.root_min,
+            root_edge: self.root_edge,
+            delta: self.config.delta_voxels * self.voxel,
+            gamma: self.config.gamma,
+            epsilon: self.config.epsilon,
+            min_radius: self.config.min_radius_voxels * self.voxel,
+            max_radius: self.config.max_radius_voxels * self.voxel,
+            update_threshold: self.config.update_threshold,
+            frame: self.frame,
+            flags,
+            blocks_x: self.layout.blocks_x,
+            blocks_y: self.layout.blocks_y,
+            block_count: self.layout.block_count,
+            node_count: self.octree.node_count() as u32,
+            refs_offset,
+            node_claim_offset: self.layout.node_claim_offset(),
+            node_held_offset: self.layout.node_held_offset(),
+            block_claim_offset: self.layout.block_claim_offset(),
+            block_held_offset: self.layout.block_held_offset(),
+            entry_capacity: self.config.entry_capacity,
+            max_pending: self.layout.max_pending,
+            pending: self.pending,
+            min_samples: self.config.min_samples,
+            max_samples: self.config.max_samples,
+            bounces: self.config.bounces,
+            priority_offset: self.layout.list_capacity(),
+            voxel: self.voxel,
+            pad0: 0,
+            pad1: 0,
+            pad2: 0,
+        };
+        engine
+            .gpu
+            .queue
+            .write_buffer(&self.cache.params, 0, bytemuck::bytes_of(&params));
+    }
+
+    /// Counters, claims and locks as after a reset, with `entries` entries in the cache and no
+    /// pending requests.
+    fn reset_words(&mut self, engine: &Engine) {
+        let words = self.layout.fresh_words(self.mirror.len() as u32);
+        engine
+            .gpu
+            .queue
+            .write_buffer(&self.pixels.words, 0, bytemuck::cast_slice(&words));
+        self.counters = [0; COUNTER_WORDS];
+        self.counters[COUNTER_ENTRIES] = self.mirror.len() as u32;
+        self.pending = 0;
+    }
+
+    fn upload_octree(&mut self, engine: &Engine) -> Result<(), EngineError> {
+        let (words, refs_offset) = self.octree.flatten();
+        let capacity = self.cache.octree.size() / 4;
+        if words.len() as u64 > capacity {
+            return Err(EngineError::Gpu(format!(
+                "irradiance octree needs {} words, has room for {capacity} (refs at {refs_offset})",
+                words.len()
+            )));
+        }
+        engine
+            .gpu
+            .queue
+            .write_buffer(&self.cache.octree, 0, bytemuck::cast_slice(&words));
+        self.octree_dirty = false;
+        Ok(())
+    }
+
+    /// Starts the picture over (the cache stays).
+    fn restart(&mut self, engine: &Engine) {
+        let mut encoder =
+            engine
+                .gpu
+                .device
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("irradiance restart"),
+                });
+        encoder.clear_buffer(self.base.bindings().accum, 0, None);
+        encoder.clear_buffer(&self.pixels.pixel_aux, 0, None);
+        engine.gpu.queue.submit([encoder.finish()]);
+        self.base.restart();
+        self.block_renders = 0;
+        self.priorities.clear();
+    }
+
+    /// Drops every entry and pending request.
+    fn clear_cache(&mut self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
+        self.mirror.clear();
+        self.octree = Octree::new(
+            self.root_min,
+            self.root_edge,
+            self.config.lock_depth,
+            octree::MAX_DEPTH - 1,
+        );
+        self.full = false;
+        self.reset_words(engine);
+        self.upload_octree(engine)?;
+        self.cache_density = scene.params.density_scale;
+        self.cache_g = scene.params.g;
+        self.cache_bounces = self.config.bounces;
+        Ok(())
+    }
+
+    /// Keeps only the entries `keep` accepts (pending requests are dropped), with the radii
+    /// the update left them.
+    fn retain_entries(
+        &mut self,
+        engine: &Engine,
+        keep: impl Fn(&CacheEntry) -> bool,
+    ) -> Result<(), EngineError> {
+        self.read_radii(engine)?;
+        self.mirror.retain(|m| keep(&m.entry));
+        self.upload_mirror(engine);
+        self.octree = Octree::new(
+            self.root_min,
+            self.root_edge,
+            self.config.lock_depth,
+            octree::MAX_DEPTH - 1,
+        );
+        self.full = false;
+        for i in 0..self.mirror.len() {
+            self.insert_into_octree(i);
+        }
+        self.reset_words(engine);
+        self.upload_octree(engine)
+    }
+
+    fn upload_mirror(&self, engine: &Engine) {
+        let entries: Vec<CacheEntry> = self.mirror.iter().map(|m| m.entry).collect();
+        let radii: Vec<f32> = self.mirror.iter().flat_map(|m| m.radii).collect();
+        let queue = &engine.gpu.queue;
+        if !entries.is_empty() {
+            queue.write_buffer(&self.cache.entries, 0, bytemuck::cast_slice(&entries));
+            queue.write_buffer(&self.cache.radii, 0, bytemuck::cast_slice(&radii));
+        }
+    }
+
+    /// A copy of the cache.
+    pub fn snapshot(&mut self, engine: &Engine) -> Result<CacheSnapshot, EngineError> {
+        self.read_radii(engine)?;
+        Ok(CacheSnapshot {
+            entries: self.mirror.iter().map(|m| m.entry).collect(),
+            radii: self.mirror.iter().flat_map(|m| m.radii).collect(),
+        })
+    }
+
+    /// Replaces the cache with a snapshot (pending requests are dropped; the picture restarts).
+    pub fn restore(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        snapshot: &CacheSnapshot,
+    ) -> Result<(), EngineError> {
+        if snapshot.entries.len() > self.config.entry_capacity as usize {
+            return Err(EngineError::InvalidScene(
+                "snapshot holds more entries than the cache".into(),
+            ));
+        }
+        self.mirror = snapshot
+            .entries
+            .iter()
+            .zip(snapshot.radii.chunks_exact(6))
+            .map(|(&entry, r)| Mirror {
+                entry,
+                radii: std::array::from_fn(|i| r[i]),
+            })
+            .collect();
+        self.upload_mirror(engine);
+        self.octree = Octree::new(
+            self.root_min,
+            self.root_edge,
+            self.config.lock_depth,
+            octree::MAX_DEPTH - 1,
+        );
+        for i in 0..self.mirror.len() {
+            self.insert_into_octree(i);
+        }
+        self.reset_words(engine);
+        self.upload_octree(engine)?;
+        self.restart(engine);
+        self.write_params(engine, scene);
+        Ok(())
+    }
+
+    /// Reads the radii back into the mirror (the update shrinks them on the GPU).
+    fn read_radii(&mut self, engine: &Engine) -> Result<(), EngineError> {
+        if self.mirror.is_empty() {
+            return Ok(());
+        }
+        let bytes =
+            engine
+                .gpu
+                .read_buffer_range(&self.cache.radii, 0, self.mirror.len() as u64 * 24)?;
+        let radii: &[f32] = bytemuck::try_cast_slice(&bytes)
+            .map_err(|e| EngineError::Gpu(format!("radii readback: {e}")))?;
+        for (m, r) in self.mirror.iter_mut().zip(radii.chunks_exact(6)) {
+            m.radii = std::array::from_fn(|i| r[i]);
+        }
+        Ok(())
+    }
+
+    fn insert_into_octree(&mut self, index: usize) {
+        if self.octree.node_count() + self.octree.max_new_nodes_per_insert()
+            > self.layout.node_capacity as usize
+            || self.octree.reference_count() + 8 > self.layout.ref_capacity as usize
+        {
+            if !self.full {
+                tracing::warn!(
+                    entries = self.mirror.len(),
+                    "irradiance cache octree is full; no more entries are created"
+                );
+            }
+            self.full = true;
+            return;
+        }
+        let m = &self.mirror[index];
+        let axes = orthonormal_basis(m.entry.normal);
+        // A hair wider than the radii, so rounding never hides a zone's edge from a lookup.
+        let half = zone_half_extent(axes, m.radii.map(|r| r * 1.001));
+        self.octree.insert(index as u32, m.entry.position, half);
+        self.octree_dirty = true;
+    }
+
+    /// The rebuild of §4.4 with the radii the update shrank (nodes are kept: pending requests
+    /// hold their indices).
+    fn rebuild_octree(&mut self, engine: &Engine) -> Result<(), EngineError> {
+        self.read_radii(engine)?;
+        self.octree.clear_references();
+        for i in 0..self.mirror.len() {
+            self.insert_into_octree(i);
+        }
+        self.last_rebuild = Instant::now();
+        self.reductions_at_rebuild = self.stats.radius_reductions;
+        self.upload_octree(engine)
+    }
+
+    fn hit_rate(&self) -> f64 {
+        let (hits, misses) = self
+            .hit_history
+            .iter()
+            .fold((0u64, 0u64), |(h, m), &(_, dh, dm)| (h + dh, m + dm));
+        if hits + misses == 0 {
+            1.0
+        } else {
+            hits as f64 / (hits + misses) as f64
+        }
+    }
+
+    /// Shares of a frame for creation and update at the current hit rate (§6).
+    fn fractions(&self) -> (f64, f64) {
+        let h = self.hit_rate().powf(self.config.fraction_exponent as f64);
+        let lerp = |(lo, hi): (f32, f32)| lo as f64 + (1.0 - h) * (hi - lo) as f64;
+        (
+            lerp(self.config.creation_fraction),
+            lerp(self.config.update_fraction),
+        )
+    }
+
+    fn next_random(&mut self) -> f64 {
+        self.lcg = self
+            .lcg
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (self.lcg >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    /// The blocks of the next frame's render passes: `renders` block renders, in turn or by
+    /// priority (every block with an unsampled pixel first, then in proportion to its
+    /// expected gain by systematic sampling).
+    fn plan_blocks(&mut self, renders: usize) -> Vec<Vec<u32>> {
+        let n = self.layout.block_count as usize;
+        let mut counts = vec![0usize; n];
+        let mut left = renders.min(n * MAX_RENDER_PASSES);
+        if self.config.priorities && self.priorities.len() == n {
+            for i in 0..n {
+                let b = (self.cursor as usize + i) % n;
+                if left > 0 && self.priorities[b] >= PRIORITY_UNSAMPLED {
+                    counts[b] = 1;
+                    left -= 1;
+                }
+            }
+            let total: f64 = self
+                .priorities
+                .iter()
+                .filter(|p| **p < PRIORITY_UNSAMPLED && p.is_finite() && **p > 0.0)
+                .map(|&p| p as f64)
+                .sum();
+            if left > 0 && total > 0.0 {
+                let step = total / left as f64;
+                let mut next = self.next_random() * step;
+                let mut cumulative = 0.0;
+                for (b, &p) in self.priorities.iter().enumerate() {
+                    if !(p < PRIORITY_UNSAMPLED && p.is_finite() && p > 0.0) {
+                        continue;
+                    }
+                    cumulative += p as f64;
+                    while next < cumulative && left > 0 {
+                        if counts[b] < MAX_RENDER_PASSES {
+                            counts[b] += 1;
+                        }
+                        left -= 1;
+                        next += step;
+                    }
+                }
+            }
+        }
+        // In turn: whatever priorities did not place.
+        while left > 0 {
+            let b = self.cursor as usize;
+            self.cursor = ((self.cursor as usize + 1) % n) as u32;
+            if counts[b] < MAX_RENDER_PASSES {
+                counts[b] += 1;
+                left -= 1;
+            } else if counts.iter().all(|&c| c >= MAX_RENDER_PASSES) {
+                break;
+            }
+        }
+        let passes = counts.iter().copied().max().unwrap_or(0);
+        (0..passes)
+            .map(|j| {
+                (0..n as u32)
+                    .filter(|&b| counts[b as usize] > j)
+                    .collect::<Vec<u32>>()
+            })
+            .filter(|pass| !pass.is_empty())
+            .collect()
+    }
+
+    fn encoder(engine: &Engine, label: &str) -> wgpu::CommandEncoder {
+        engine
+            .gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) })
+    }
+
+    fn submit_and_time(
+        engine: &Engine,
+        encoder: wgpu::CommandEncoder,
+    ) -> Result<Duration, EngineError> {
+        let start = Instant::now();
+        engine.gpu.queue.submit([encoder.finish()]);
+        engine.gpu.wait_idle()?;
+        Ok(start.elapsed())
+    }
+
+    /// One frame: rendering, then (with the cache and `cache_work`) creation rounds, update
+    /// rounds and the requests pass, then priorities.
+    pub fn frame(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        cache_work: bool,
+    ) -> Result<FrameTimes, EngineError> {
+        let cache_on = self.cache_active(scene);
+        self.stats.active = cache_on;
+        let (tc, tu) = if cache_on {
+            self.fractions()
+        } else {
+            (0.0, 0.0)
+        };
+        let n = self.layout.block_count as usize;
+        let renders = match (self.config.frame_time, self.block_cost) {
+            (Some(frame), Some(cost)) => {
+                ((1.0 - tc - tu) * frame.as_secs_f64() / cost.max(1e-9)).round() as usize
+            }
+            _ => n,
+        }
+        .clamp(1, n * MAX_RENDER_PASSES);
+        let passes = self.plan_blocks(renders);
+        self.write_params(engine, scene);
+        self.base.encode_uniforms(engine, scene)?;
+
+        // Dispatch descriptors: render chunks first, then rounds.
+        let mut infos: Vec<DispatchInfo> = Vec::new();
+        let mut list: Vec<u32> = Vec::new();
+        let mut render_dispatches = Vec::new();
+        for pass in &passes {
+            for chunk in pass.chunks(MAX_WORKGROUPS) {
+                render_dispatches.push((infos.len() as u32, chunk.len() as u32));
+                infos.push(DispatchInfo {
+                    first: list.len() as u32,
+                    count: chunk.len() as u32,
+                    round: 0,
+                    pad0: 0,
+                });
+                list.extend_from_slice(chunk);
+            }
+        }
+        let blocks_rendered = list.len() as u32;
+        let mut times = FrameTimes {
+            blocks_rendered,
+            ..FrameTimes::default()
+        };
+        let queue = &engine.gpu.queue;
+        queue.write_buffer(&self.pixels.blocks, 0, bytemuck::cast_slice(&list));
+
+        // Creation and update rounds of this frame.
+        let frame_time = match self.config.frame_time {
+            Some(t) => t.as_secs_f64(),
+            None => self.block_cost.unwrap_or(0.0) * n as f64 / (1.0 - tc - tu).max(0.5),
+        };
+        let (mut create_rounds, mut update_rounds) = (0u32, 0u32);
+        if cache_on && cache_work {
+            if let Some((c, u)) = self.config.fixed_rounds {
+                create_rounds = if self.pending > 0 { c } else { 0 };
+                update_rounds = if self.mirror.len() >= 2 { u } else { 0 };
+            } else {
+                self.creation_credit =
+                    (self.creation_credit + tc * frame_time).min(tc * frame_time);
+                self.update_credit = (self.update_credit + tu * frame_time).min(tu * frame_time);
+                if self.pending > 0 && self.creation_credit > 0.0 {
+                    create_rounds = match self.request_round_cost {
+                        Some(cost) => (self.creation_credit / (cost * self.pending as f64))
+                            .ceil()
+                            .clamp(1.0, MAX_CREATE_ROUNDS as f64)
+                            as u32,
+                        None => 1,
+                    };
+                }
+                if self.mirror.len() >= 2 && self.update_credit > 0.0 {
+                    update_rounds = match self.update_round_cost {
+                        Some(cost) => (self.update_credit / cost)
+                            .ceil()
+                            .clamp(1.0, MAX_UPDATE_ROUNDS as f64)
+                            as u32,
+                        None => 1,
+                    };
+                }
+            }
+        }
+        let create_first = infos.len() as u32;
+        for r in 0..create_rounds.min(MAX_CREATE_ROUNDS) {
+            infos.push(DispatchInfo {
+                first: 0,
+                count: self.pending,
+                round: r,
+                pad0: 0,
+            });
+        }
+        let update_first = infos.len() as u32;
+        for r in 0..update_rounds.min(MAX_UPDATE_ROUNDS) {
+            infos.push(DispatchInfo {
+                first: 0,
+                count: self.layout.block_count,
+                round: self.frame.wrapping_mul(MAX_UPDATE_ROUNDS) + r,
+                pad0: 0,
+            });
+        }
+        let priority_first = infos.len() as u32;
+        if self.config.priorities {
+            for first in (0..n).step_by(MAX_WORKGROUPS) {
+                infos.push(DispatchInfo {
+                    first: first as u32,
+                    count: (n - first).min(MAX_WORKGROUPS) as u32,
+                    round: 0,
+                    pad0: 0,
+                });
+            }
+        }
+        if infos.len() > DISPATCH_SLOTS as usize {
+            return Err(EngineError::Gpu(format!(
+                "irradiance frame needs {} dispatches, has {DISPATCH_SLOTS}",
+                infos.len()
+            )));
+        }
+        let mut padded = vec![0u8; infos.len() * DISPATCH_STRIDE as usize];
+        for (i, info) in infos.iter().enumerate() {
+            let at = i * DISPATCH_STRIDE as usize;
+            padded[at..at + size_of::<DispatchInfo>()].copy_from_slice(bytemuck::bytes_of(info));
+        }
+        queue.write_buffer(&self.cache.dispatch, 0, &padded);
+        let passes_gpu = &engine.irradiance;
+
+        // Rendering.
+        let mut encoder = Self::encoder(engine, "irradiance render");
+        for &(slot, count) in &render_dispatches {
+            passes_gpu.encode(
+                &mut encoder,
+                "irradiance render",
+                &passes_gpu.render,
+                &self.bind_group,
+                slot,
+                count,
+            );
+        }
+        times.render = Self::submit_and_time(engine, encoder)?;
+        if blocks_rendered > 0 {
+            let cost = times.render.as_secs_f64() / blocks_rendered as f64;
+            self.block_cost = Some(match self.block_cost {
+                Some(old) => 0.7 * old + 0.3 * cost,
+                None => cost,
+            });
+        }
+        self.block_renders += blocks_rendered as u64;
+
+        if cache_on {
+            if create_rounds > 0 {
+                let mut encoder = Self::encoder(engine, "irradiance create");
+                for r in 0..create_rounds {
+                    passes_gpu.encode(
+                        &mut encoder,
+                        "irradiance create",
+                        &passes_gpu.create,
+                        &self.bind_group,
+                        create_first + r,
+                        self.pending,
+                    );
+                }
+                times.create = Self::submit_and_time(engine, encoder)?;
+                self.creation_credit -= times.create.as_secs_f64();
+                let cost = times.create.as_secs_f64() / (create_rounds * self.pending) as f64;
+                self.request_round_cost = Some(match self.request_round_cost {
+                    Some(old) => 0.7 * old + 0.3 * cost,
+                    None => cost,
+                });
+                self.stats.creation_rounds += create_rounds as u64;
+            }
+            if update_rounds > 0 {
+                let mut encoder = Self::encoder(engine, "irradiance update");
+                for r in 0..update_rounds {
+                    passes_gpu.encode(
+                        &mut encoder,
+                        "irradiance update",
+                        &passes_gpu.update,
+                        &self.bind_group,
+                        update_first + r,
+                        self.layout.block_count.div_ceil(UPDATE_WORKGROUP),
+                    );
+                }
+                times.update = Self::submit_and_time(engine, encoder)?;
+                self.update_credit -= times.update.as_secs_f64();
+                let cost = times.update.as_secs_f64() / update_rounds as f64;
+                self.update_round_cost = Some(match self.update_round_cost {
+                    Some(old) => 0.7 * old + 0.3 * cost,
+                    None => cost,
+                });
+                self.stats.update_rounds += update_rounds as u64;
+            }
+            let bookkeeping = Instant::now();
+            if cache_work {
+                let mut encoder = Self::encoder(engine, "irradiance requests");
+                passes_gpu.encode(
+                    &mut encoder,
+                    "irradiance requests",
+                    &passes_gpu.requests,
+                    &self.bind_group,
+                    0,
+                    1,
+                );
+                engine.gpu.queue.submit([encoder.finish()]);
+            }
+            self.read_counters(engine)?;
+            if self.octree_dirty {
+                self.upload_octree(engine)?;
+            }
+            if self.stats.radius_reductions > self.reductions_at_rebuild
+                && self.last_rebuild.elapsed() >= self.config.rebuild_interval
+            {
+                self.rebuild_octree(engine)?;
+            }
+            times.bookkeeping = bookkeeping.elapsed();
+        }
+
+        if self.config.priorities {
+            let bookkeeping = Instant::now();
+            let mut encoder = Self::encoder(engine, "irradiance priority");
+            for (i, first) in (0..n).step_by(MAX_WORKGROUPS).enumerate() {
+                passes_gpu.encode(
+                    &mut encoder,
+                    "irradiance priority",
+                    &passes_gpu.priority,
+                    &self.bind_group,
+                    priority_first + i as u32,
+                    (n - first).min(MAX_WORKGROUPS) as u32,
+                );
+            }
+            engine.gpu.queue.submit([encoder.finish()]);
+            let bytes = engine.gpu.read_buffer_range(
+                &self.pixels.blocks,
+                self.layout.list_capacity() as u64 * 4,
+                n as u64 * 4,
+            )?;
+            self.priorities = bytemuck::try_cast_slice::<u8, f32>(&bytes)
+                .map_err(|e| EngineError::Gpu(format!("priority readback: {e}")))?
+                .to_vec();
+            times.bookkeeping += bookkeeping.elapsed();
+        }
+        self.frame = self.frame.wrapping_add(1);
+        self.last_frame = times;
+        Ok(times)
+    }
+
+    /// Reads the counters; stores the entries finished this frame in the octree.
+    fn read_counters(&mut self, engine: &Engine) -> Result<(), EngineError> {
+        let bytes =
+            engine
+                .gpu
+                .read_buffer_range(&self.pixels.words, 0, (COUNTER_WORDS * 4) as u64)?;
+        let words: &[u32] = bytemuck::try_cast_slice(&bytes)
+            .map_err(|e| EngineError::Gpu(format!("counter readback: {e}")))?;
+        let delta = |k: usize| words[k].wrapping_sub(self.counters[k]) as u64;
+        let (hits, misses) = (delta(COUNTER_HITS), delta(COUNTER_MISSES));
+        self.stats.hits += hits;
+        self.stats.misses += misses;
+        self.stats.created += delta(COUNTER_CREATED);
+        self.stats.requests_issued += delta(COUNTER_ISSUED);
+        self.stats.requests_dropped += delta(COUNTER_DROPPED) + delta(COUNTER_LOST);
+        self.stats.radius_reductions += delta(COUNTER_REDUCTIONS);
+        let now = Instant::now();
+        self.hit_history.push_back((now, hits, misses));
+        while self.hit_history.len() > 1
+            && self
+                .hit_history
+                .front()
+                .is_some_and(|(t, _, _)| now.duration_since(*t) > self.config.hit_rate_window)
+        {
+            self.hit_history.pop_front();
+        }
+        self.pending = words[COUNTER_PENDING];
+        let entries = words[COUNTER_ENTRIES] as usize;
+        self.counters.copy_from_slice(&words[..COUNTER_WORDS]);
+        let known = self.mirror.len();
+        if entries > known {
+            let size = size_of::<CacheEntry>() as u64;
+            let bytes = engine.gpu.read_buffer_range(
+                &self.cache.entries,
+                known as u64 * size,
+                (entries - known) as u64 * size,
+            )?;
+            let new: &[CacheEntry] = bytemuck::try_cast_slice(&bytes)
+                .map_err(|e| EngineError::Gpu(format!("entry readback: {e}")))?;
+            let delta = self.config.delta_voxels * self.voxel;
+            let (min_r, max_r) = (
+                self.config.min_radius_voxels * self.voxel,
+                self.config.max_radius_voxels * self.voxel,
+            );
+            for entry in new {
+                let radii = std::array::from_fn(|h| {
+                    validity_radius(entry.sigma[h][3], delta, self.config.epsilon, min_r, max_r)
+                });
+                self.mirror.push(Mirror {
+                    entry: *entry,
+                    radii,
+                });
+                self.insert_into_octree(self.mirror.len() - 1);
+            }
+        }
+        Ok(())
+    }
+
+    /// A TF edit: drops the entries it can change (or all of them), keeps the rest.
+    fn apply_tf(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        old: &TransferFunction,
+    ) -> Result<(), EngineError> {
+        let before = self.mirror.len() as u32;
+        let query = query_historygram(old, &scene.tf);
+        let opacity_query = opacity_query_historygram(old, &scene.tf);
+        if query == 0 {
+            self.stats.last_edit = Some((before, before));
+            return Ok(());
+        }
+        match self.config.invalidation {
+            Invalidation::Clear => self.clear_cache(engine, scene)?,
+            Invalidation::Historygram => {
+                self.retain_entries(engine, |e| !e.meets(query, opacity_query))?
+            }
+        }
+        self.stats.last_edit = Some((before, self.mirror.len() as u32));
+        Ok(())
+    }
+
+    /// Sets how TF edits treat the cache.
+    pub fn set_invalidation(&mut self, invalidation: Invalidation) {
+        self.config.invalidation = invalidation;
+    }
+}
+
+/// The radii an entry starts with: validity_radius in irradiance_common.wgsl.
+pub fn validity_radius(sigma: f32, delta: f32, epsilon: f32, min_r: f32, max_r: f32) -> f32 {
+    let magnitude = sigma.abs();
+    let mut r = max_r;
+    if magnitude > 0.0 {
+        let c = if sigma < 0.0 {
+            (1.0 + epsilon).ln()
+        } else {
+            -(1.0 - epsilon).ln()
+        };
+        r = (delta + c / magnitude).min(max_r);
+    }
+    r.max(min_r)
+}
+
+/// The columns (t, b, n) of orthonormal_basis in common.wgsl.
+pub fn orthonormal_basis(n: [f32; 3]) -> [[f32; 3]; 3] {
+    let s = if n[2] >= 0.0 { 1.0 } else { -1.0 };
+    let a = -1.0 / (s + n[2]);
+    let b = n[0] * n[1] * a;
+    [
+        [1.0 + s * n[0] * n[0] * a, s * b, -s * n[0]],
+        [b, s + n[1] * n[1] * a, -n[1]],
+        n,
+    ]
+}
+
+fn validate(config: &IrradianceConfig) -> Result<(), EngineError> {
+    let positive = |x: f32| x.is_finite() && x > 0.0;
+    let fraction = |(lo, hi): (f32, f32)| (0.0..=0.45).contains(&lo) && lo <= hi && hi <= 0.45;
+    let ok = config.bounces >= 1
+        && positive(config.gamma)
+        && config.epsilon > 0.0
+        && config.epsilon < 1.0
+        && positive(config.delta_voxels)
+        && positive(config.min_radius_voxels)
+        && config.min_radius_voxels <= config.max_radius_voxels
+        && config.max_radius_voxels.is_finite()
+        && positive(config.update_threshold)
+        && fraction(config.creation_fraction)
+        && fraction(config.update_fraction)
+        && config.creation_fraction.1 + config.update_fraction.1 < 0.9
+        && positive(config.fraction_exponent)
+        && config.entry_capacity >= 1
+        && config.min_samples >= 2
+        && config.min_samples <= config.max_samples
+        && config.max_pending.is_none_or(|p| (1..=65535).contains(&p))
+        && config.lock_depth <= 6;
+    if ok {
+        Ok(())
+    } else {
+        Err(EngineError::InvalidScene(format!(
+            "irradiance: bad configuration {config:?}"
+        )))
+    }
+}
+
+fn pixel_buffers(engine: &Engine, width: u32, height: u32, layout: &Layout) -> PixelBuffers {
+    let gpu = &engine.gpu;
+    let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
+    PixelBuffers {
+        pixel_aux: gpu.buffer(
+            "irradiance pixel aux",
+            width as u64 * height as u64 * 16,
+            storage,
+        ),
+        blocks: gpu.buffer(
+            "irradiance blocks",
+            (layout.list_capacity() + layout.block_count) as u64 * 4,
+            storage,
+        ),
+        words: gpu.buffer("irradiance words", layout.words() as u64 * 4, storage),
+    }
+}
+
+fn bind_group(
+    engine: &Engine,
+    base: &Progressive,
+    cache: &CacheBuffers,
+    pixels: &PixelBuffers,
+) -> wgpu::BindGroup {
+    engine.irradiance.bind_group(
+        &engine.gpu,
+        &IrradianceBindings {
+            estimator: base.bindings(),
+            params: &cache.params,
+            dispatch: &cache.dispatch,
+            entries: &cache.entries,
+            radii: &cache.radii,
+            octree: &cache.octree,
+            words: &pixels.words,
+            pixel_aux: &pixels.pixel_aux,
+            blocks: &pixels.blocks,
+            requests: &cache.requests,
+            cell_bins: &cache.cell_bins,
+        },
+    )
+}
+
+impl Technique for Irradiance {
+    fn name(&self) -> &'static str {
+        "irradiance"
+    }
+
+    fn apply(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        change: &Change,
+    ) -> Result<(), EngineError> {
+        self.base.apply(engine, scene, change)?;
+        match change {
+            Change::Iterations => return Ok(()),
+            Change::Camera => {}
+            Change::Tf { old, .. } => self.apply_tf(engine, scene, old)?,
+            Change::Lights => self.clear_cache(engine, scene)?,
+            Change::Params => {
+                let cache_stale = scene.params.density_scale != self.cache_density
+                    || scene.params.g != self.cache_g;
+                if cache_stale {
+                    self.clear_cache(engine, scene)?;
+                } else {
+                    // Only the exposure changed: tone mapping shows it.
+                    return Ok(());
+                }
+            }
+            Change::Viewport => {
+                let (width, height) = (scene.viewport.width, scene.viewport.height);
+                let layout = Layout::new(width, height, &self.config);
+                // Node capacity follows the entry capacity, so the cache buffers still fit.
+                self.layout = Layout {
+                    node_capacity: self.layout.node_capacity,
+                    ref_capacity: self.layout.ref_capacity,
+                    max_pending: self.layout.max_pending,
+                    ..layout
+                };
+                self.pixels = pixel_buffers(engine, width, height, &self.layout);
+                self.bind_group = bind_group(engine, &self.base, &self.cache, &self.pixels);
+                self.reset_words(engine);
+                self.cursor = 0;
+                self.block_cost = None;
+            }
+        }
+        self.restart(engine);
+        Ok(())
+    }
+
+    fn step(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        budget: Duration,
+    ) -> Result<StepReport, EngineError> {
+        let target = scene.target_iterations;
+        let start = Instant::now();
+        let mut done = 0;
+        let mut gpu_time = Duration::ZERO;
+        while self.iteration() < target {
+            // A zero budget asks for one picture now (the first frame after an edit).
+            let times = self.frame(engine, scene, !budget.is_zero())?;
+            gpu_time += times.total();
+            done += 1;
+            if budget.is_zero() || start.elapsed() >= budget {
+                break;
+            }
+        }
+        Ok(StepReport {
+            iterations_done: done,
+            iteration: self.iteration(),
+            converged: self.iteration() >= target,
+            gpu_time,
+        })
+    }
+
+    fn output(&self) -> &wgpu::Buffer {
+        self.base.bindings().accum
+    }
+
+    /// Image-sized rounds of block renders since the picture restarted.
+    fn iteration(&self) -> u32 {
+        (self.block_renders / self.layout.block_count.max(1) as u64) as u32
+    }
+
+    fn stats(&self) -> TechniqueStats {
+        let cache = self.cache_stats();
+        let (w, h) = self.base.size();
+        TechniqueStats {
+            name: self.name(),
+            iteration: self.iteration(),
+            memory_bytes: irradiance_bytes(
+                w,
+                h,
+                &self.config,
+                self.cache.cell_bins.size() as usize / 8,
+            ),
+            cache_entries: Some(cache.entries),
+            octree_references: Some(cache.references),
+            cache_hit_rate: Some(cache.hit_rate),
+            pending_entries: Some(cache.pending),
+            cache_active: Some(cache.active),
+            cache_entries_kept_pct: cache
+                .last_edit
+                .map(|(before, kept)| 100.0 * kept as f32 / before.max(1) as f32),
+            ..TechniqueStats::default()
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn validity_radius_follows_eq_9_and_10() {
+        // Irradiance falling by a factor 2 over Δ = 1: σ = ln 2; the extrapolation E0·e^(−σx)
+        // reaches (1 − ε)·E_Δ at x = Δ + ln(1/(1 − ε))/σ.
+        let sigma = 2f32.ln();
+        let r = validity_radius(sigma, 1.0, 0.1, 0.01, 100.0);
+        let e_delta = 0.5f32;
+        assert!(((-sigma * r).exp() - 0.9 * e_delta).abs() < 1e-5);
+        // Growing irradiance: (1 + ε)·E_Δ.
+        let r = validity_radius(-sigma, 1.0, 0.1, 0.01, 100.0);
+        assert!(((sigma * r).exp() - 1.1 * 2.0).abs() < 1e-4);
+        // Flat irradiance: the largest zone; huge gradients: never below Δ, clamped above.
+        assert_eq!(validity_radius(0.0, 1.0, 0.1, 0.01, 16.0), 16.0);
+        assert!(validity_radius(1e6, 1.0, 0.1, 0.01, 16.0) >= 1.0);
+    }
+
+    #[test]
+    fn basis_is_orthonormal_and_keeps_the_normal() {
+        for n in [
+            [0.0, 0.0, 1.0],
+            [0.0, 0.0, -1.0],
+            [0.6, 0.0, 0.8],
+            [0.48, -0.6, 0.64],
+        ] {
+            let b = orthonormal_basis(n);
+            for i in 0..3 {
+                for j in 0..3 {
+                    let dot: f32 = (0..3).map(|k| b[i][k] * b[j][k]).sum();
+                    let want = if i == j { 1.0 } else { 0.0 };
+                    assert!((dot - want).abs() < 1e-5, "{n:?}: axes {i}·{j} = {dot}");
+                }
+            }
+            assert_eq!(b[2], n);
+        }
+    }
+
+    #[test]
+    fn pending_entries_scale_with_the_viewport_as_in_table_1() {
+        let config = IrradianceConfig::default();
+        assert_eq!(Layout::new(1280, 720, &config).max_pending, 1000);
+        assert_eq!(Layout::new(64, 64, &config).max_pending, 16);
+        assert_eq!(Layout::new(1920, 1080, &config).max_pending, 1000);
+        let layout = Layout::new(100, 50, &config);
+        assert_eq!((layout.blocks_x, layout.blocks_y), (7, 7));
+        let words = layout.fresh_words(5);
+        assert_eq!(words[COUNTER_ENTRIES], 5);
+        assert_eq!(words[layout.node_claim_offset() as usize], u32::MAX);
+        assert_eq!(words[layout.node_held_offset() as usize], 0);
+        assert_eq!(words[layout.block_claim_offset() as usize], u32::MAX);
+        assert_eq!(*words.last().unwrap(), 0);
+    }
+
+    #[test]
+    fn bad_configurations_are_refused() {
+        let bad = [
+            IrradianceConfig {
+                bounces: 0,
+                ..Default::default()
+            },
+            IrradianceConfig {
+                epsilon: 1.0,
+                ..Default::default()
+            },
+            IrradianceConfig {
+                creation_fraction: (0.2, 0.1),
+                ..Default::default()
+            },
+            IrradianceConfig {
+                min_samples: 1,
+                ..Default::default()
+            },
+        ];
+        for config in bad {
+            assert!(validate(&config).is_err(), "{config:?}");
+        }
+        validate(&IrradianceConfig::default()).unwrap();
+    }
+}

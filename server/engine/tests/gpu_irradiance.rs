@@ -1,0 +1,526 @@
+//! Technique `irradiance` on whatever adapter exists (lavapipe in CI): the cached picture is
+//! exact where the irradiance is known, converges to `pathtrace` (and, single scattering only,
+//! to `raymarch`), the 7-point estimate recovers the extinction of a homogeneous medium, TF
+//! edits keep exactly the entries their historygrams say they cannot change, and a run with a
+//! fixed schedule repeats bit for bit.
+
+mod common;
+
+use std::sync::Arc;
+
+use common::*;
+use voxlight_engine::techniques::irradiance::{Irradiance, IrradianceConfig, Locking};
+use voxlight_engine::{GpuVolume, Renderer, Scene, Technique};
+use voxlight_protocol::{Light, TfPoint, TransferFunction};
+use voxlight_volumes::Volume;
+
+/// A repeatable configuration: fixed creation and update rounds per frame.
+fn fixed(config: IrradianceConfig) -> IrradianceConfig {
+    IrradianceConfig {
+        fixed_rounds: Some((4, 1)),
+        ..config
+    }
+}
+
+fn irradiance(volume: Arc<GpuVolume>, scene: &Scene, config: IrradianceConfig) -> Renderer {
+    let engine = engine();
+    let technique = Irradiance::new(engine, volume.clone(), scene, config).expect("irradiance");
+    Renderer::with_technique(engine, Box::new(technique), volume, scene).expect("renderer")
+}
+
+/// Runs `frames` frames (no time budget: each renders the image once plus fixed rounds).
+fn run(renderer: &mut Renderer, scene: &Scene, frames: u32) -> Vec<[f32; 3]> {
+    let engine = engine();
+    for _ in 0..frames {
+        renderer
+            .step(engine, scene, std::time::Duration::from_nanos(1))
+            .expect("step");
+    }
+    renderer.read_hdr(engine).expect("hdr")
+}
+
+fn mean(hdr: &[[f32; 3]]) -> [f64; 3] {
+    let mut m = [0f64; 3];
+    for p in hdr {
+        for k in 0..3 {
+            m[k] += p[k] as f64 / hdr.len() as f64;
+        }
+    }
+    m
+}
+
+fn lum(c: [f32; 3]) -> f64 {
+    0.2126 * c[0] as f64 + 0.7152 * c[1] as f64 + 0.0722 * c[2] as f64
+}
+
+fn details(renderer: &Renderer) -> voxlight_engine::TechniqueStats {
+    renderer.stats()
+}
+
+#[test]
+fn white_furnace_is_exact_through_the_cache() {
+    // Albedo 1 in a uniform environment: every irradiance sample is exactly 4πL, so entries
+    // converge at once with flat zones and every cached pixel is exactly L.
+    let (_, volume) = sphere(32);
+    let env = [0.7, 0.5, 0.3];
+    let s = scene(
+        ramp_tf(1.0),
+        vec![Light::Environment { radiance: env }],
+        20.0,
+        32,
+        1000,
+    );
+    let mut renderer = irradiance(volume, &s, fixed(IrradianceConfig::default()));
+    let hdr = run(&mut renderer, &s, 12);
+    let stats = details(&renderer);
+    assert!(stats.cache_entries.unwrap() > 0, "{stats:?}");
+    assert!(stats.cache_hit_rate.unwrap() > 0.5, "{stats:?}");
+    for (i, px) in hdr.iter().enumerate() {
+        for k in 0..3 {
+            assert!(
+                (px[k] / env[k] - 1.0).abs() < 1e-4,
+                "pixel {i} is {px:?}, not {env:?} ({stats:?})"
+            );
+        }
+    }
+}
+
+/// Relative RMS difference of two pictures' luminance (over the mean of `reference`).
+fn relative_rms(hdr: &[[f32; 3]], reference: &[[f32; 3]]) -> f64 {
+    let (mut sq, mut sum) = (0.0, 0.0);
+    for (a, b) in hdr.iter().zip(reference) {
+        sq += (lum(*a) - lum(*b)).powi(2);
+        sum += lum(*b);
+    }
+    let n = hdr.len() as f64;
+    (sq / n).sqrt() / (sum / n)
+}
+
+fn lit_sphere(size: u32) -> Scene {
+    scene(
+        ramp_tf(0.8),
+        vec![
+            Light::Directional {
+                direction: [0.3, -1.0, -0.4],
+                irradiance: [3.0, 2.6, 2.2],
+            },
+            Light::Environment {
+                radiance: [0.3, 0.32, 0.36],
+            },
+        ],
+        10.0,
+        size,
+        1000,
+    )
+}
+
+fn reference(technique: &str, volume: Arc<GpuVolume>, s: &Scene, spp: u32) -> Vec<[f32; 3]> {
+    let mut s = s.clone();
+    s.target_iterations = spp;
+    render_with(technique, volume, &s).1
+}
+
+#[test]
+fn multiple_scattering_converges_to_pathtrace() {
+    let (_, volume) = sphere(40);
+    let s = lit_sphere(48);
+    let mut renderer = irradiance(volume.clone(), &s, fixed(IrradianceConfig::default()));
+    let hdr = run(&mut renderer, &s, 40);
+    let stats = details(&renderer);
+    let want = reference("pathtrace", volume, &s, 256);
+    let (got, exp) = (mean(&hdr), mean(&want));
+    for k in 0..3 {
+        assert!(
+            (got[k] / exp[k] - 1.0).abs() < 0.02,
+            "mean {got:?} vs pathtrace {exp:?} ({stats:?})"
+        );
+    }
+    let rms = relative_rms(&hdr, &want);
+    assert!(rms < 0.06, "relative RMS {rms} ({stats:?})");
+    assert!(stats.cache_entries.unwrap() >= 30, "{stats:?}");
+    assert!(stats.cache_hit_rate.unwrap() > 0.3, "{stats:?}");
+    assert!(stats.octree_references.unwrap() >= stats.cache_entries.unwrap() as u64);
+}
+
+#[test]
+fn single_scattering_cache_agrees_with_raymarch() {
+    let (_, volume) = sphere(40);
+    let s = lit_sphere(48);
+    let config = fixed(IrradianceConfig {
+        bounces: 1,
+        ..Default::default()
+    });
+    let mut renderer = irradiance(volume.clone(), &s, config);
+    let hdr = run(&mut renderer, &s, 40);
+    let want = reference("raymarch", volume, &s, 256);
+    let (got, exp) = (mean(&hdr), mean(&want));
+    for k in 0..3 {
+        assert!(
+            (got[k] / exp[k] - 1.0).abs() < 0.02,
+            "mean {got:?} vs raymarch {exp:?} ({:?})",
+            details(&renderer)
+        );
+    }
+}
+
+#[test]
+fn screen_space_locking_builds_a_cache_that_converges_too() {
+    let (_, volume) = sphere(40);
+    let s = lit_sphere(48);
+    let config = fixed(IrradianceConfig {
+        locking: Locking::Screen,
+        priorities: false,
+        ..Default::default()
+    });
+    let mut renderer = irradiance(volume.clone(), &s, config);
+    let hdr = run(&mut renderer, &s, 40);
+    let stats = details(&renderer);
+    assert!(stats.cache_entries.unwrap() >= 20, "{stats:?}");
+    let want = reference("pathtrace", volume, &s, 256);
+    let (got, exp) = (mean(&hdr), mean(&want));
+    assert!(
+        (lum(got.map(|x| x as f32)) / lum(exp.map(|x| x as f32)) - 1.0).abs() < 0.02,
+        "mean {got:?} vs pathtrace {exp:?} ({stats:?})"
+    );
+}
+
+/// A homogeneous cube: every voxel at 0.5.
+fn homogeneous(size: u32) -> Arc<GpuVolume> {
+    let data = vec![32768u16; (size * size * size) as usize];
+    let volume = Volume::from_normalized("homogeneous", [size; 3], [1.0; 3], data).unwrap();
+    engine().upload_volume(&volume).unwrap()
+}
+
+#[test]
+fn seven_point_estimate_recovers_the_extinction_of_a_homogeneous_medium() {
+    // Direct light falling straight down (−y) through extinction σ: E = E_L·exp(−σ·depth), so
+    // along +y (the local frame's b axis where the medium is flat) the virtual extinction
+    // coefficient is −σ and along −y it is +σ; sideways it is zero.
+    let size = 32;
+    let volume = homogeneous(size);
+    let density = 4.0;
+    let sigma = density * 32768.0 / 65535.0;
+    let s = scene(
+        ramp_tf(0.5),
+        vec![Light::Directional {
+            direction: [0.0, -1.0, 0.0],
+            irradiance: [1.0; 3],
+        }],
+        density,
+        32,
+        1000,
+    );
+    let config = fixed(IrradianceConfig {
+        bounces: 1,
+        ..Default::default()
+    });
+    let engine = engine();
+    let mut technique = Irradiance::new(engine, volume, &s, config).unwrap();
+    for _ in 0..40 {
+        technique.frame(engine, &s, true).unwrap();
+    }
+    let delta = 2.0 / size as f32;
+    let inner: Vec<_> = technique
+        .entries()
+        .into_iter()
+        .filter(|e| e.position.iter().all(|&c| c.abs() < 0.5 - 1.1 * delta))
+        .collect();
+    assert!(
+        inner.len() >= 5,
+        "only {} of {} entries inside: {:?}",
+        inner.len(),
+        technique.entries().len(),
+        technique.cache_stats()
+    );
+    for e in &inner {
+        assert_eq!(e.normal, [0.0, 0.0, 1.0], "flat medium: the fallback frame");
+        // Half-axes +t, −t, +b, −b, +n, −n; b is +y.
+        let up = e.sigma[2][3];
+        let down = e.sigma[3][3];
+        assert!(
+            (up + sigma).abs() < 0.1 * sigma,
+            "σ(+y) = {up}, want −{sigma}"
+        );
+        assert!(
+            (down - sigma).abs() < 0.1 * sigma,
+            "σ(−y) = {down}, want {sigma}"
+        );
+        for h in [0, 1, 4, 5] {
+            assert!(
+                e.sigma[h][3].abs() < 0.1 * sigma,
+                "σ sideways = {}",
+                e.sigma[h][3]
+            );
+        }
+        // The estimate itself: E_L·exp(−σ·depth below the top face).
+        let depth = 0.5 - e.position[1];
+        let want = (-sigma * depth).exp();
+        assert!(
+            (e.irradiance[0] / want - 1.0).abs() < 0.12,
+            "E = {} at depth {depth}, want {want}",
+            e.irradiance[0]
+        );
+    }
+}
+
+/// The Cornell phantom's materials, looking into the box.
+fn cornell(size: u32, tf: TransferFunction) -> Scene {
+    let mut s = scene(
+        tf,
+        vec![
+            Light::Point {
+                position: [0.0, 0.3, 0.1],
+                intensity: [0.5, 0.48, 0.45],
+            },
+            Light::Environment {
+                radiance: [0.1, 0.1, 0.11],
+            },
+        ],
+        30.0,
+        size,
+        1000,
+    );
+    s.camera = voxlight_protocol::Camera {
+        eye: [0.0, 0.0, 2.6],
+        target: [0.0, 0.0, 0.0],
+        up: [0.0, 1.0, 0.0],
+        fov_deg: 28.0,
+    };
+    s
+}
+
+#[test]
+fn tf_edits_keep_exactly_the_entries_their_historygrams_exclude() {
+    let engine = engine();
+    let volume = engine
+        .upload_volume(&voxlight_volumes::phantom("cornell", 40).unwrap())
+        .unwrap();
+    let before_tf = cornell_materials_tf(0.02, |_, _, _| {});
+    // Single scattering from the point light only: an entry depends on the values along its
+    // shadow rays to the light (and not on any albedo).
+    let mut s = cornell(40, before_tf.clone());
+    s.lights.retain(|l| matches!(l, Light::Point { .. }));
+    let config = fixed(IrradianceConfig {
+        bounces: 1,
+        ..Default::default()
+    });
+    let mut technique = Irradiance::new(engine, volume.clone(), &s, config).unwrap();
+    for _ in 0..24 {
+        technique.frame(engine, &s, true).unwrap();
+    }
+    let built = technique.entries();
+    assert!(built.len() >= 20, "{:?}", technique.cache_stats());
+
+    let edits: [(&str, TransferFunction); 3] = [
+        (
+            "recolour the right wall",
+            cornell_materials_tf(0.02, |n, c, _| {
+                if n == "right wall" {
+                    *c = [0.2, 0.2, 0.9];
+                }
+            }),
+        ),
+        (
+            "remove the tall block",
+            cornell_materials_tf(0.02, |n, _, o| {
+                if n == "tall block" {
+                    *o = 0.0;
+                }
+            }),
+        ),
+        (
+            "every bin",
+            TransferFunction {
+                points: before_tf
+                    .points
+                    .iter()
+                    .map(|p| TfPoint {
+                        opacity: (p.opacity * 0.5).max(0.01),
+                        ..*p
+                    })
+                    .collect(),
+            },
+        ),
+    ];
+    let snapshot = technique.snapshot(engine).unwrap();
+    let mut kept_counts = Vec::new();
+    for (name, tf) in edits {
+        technique.restore(engine, &s, &snapshot).unwrap();
+        let mut edited = s.clone();
+        edited.tf = tf;
+        let change = voxlight_engine::Change::tf(&s.tf, &edited.tf);
+        let voxlight_engine::Change::Tf {
+            query_historygram, ..
+        } = change.clone()
+        else {
+            unreachable!()
+        };
+        let opacity_query = voxlight_engine::tf::opacity_query_historygram(&s.tf, &edited.tf);
+        technique.apply(engine, &edited, &change).unwrap();
+        let kept = technique.entries();
+        let want: Vec<_> = built
+            .iter()
+            .filter(|e| !e.meets(query_historygram, opacity_query))
+            .copied()
+            .collect();
+        assert_eq!(
+            kept, want,
+            "{name}: kept entries differ from the historygram test"
+        );
+        let stats = technique.cache_stats();
+        assert_eq!(
+            stats.last_edit,
+            Some((built.len() as u32, kept.len() as u32))
+        );
+        kept_counts.push((name, kept.len()));
+        // A fresh picture with the kept cache still comes out right.
+        if name == "remove the tall block" {
+            for _ in 0..16 {
+                technique.frame(engine, &edited, true).unwrap();
+            }
+            let got = read(&technique);
+            let want = reference("raymarch", volume.clone(), &edited, 128);
+            let (g, w) = (lum_of(mean(&got)), lum_of(mean(&want)));
+            assert!(
+                (g / w - 1.0).abs() < 0.04,
+                "{name}: mean {g} vs raymarch {w}"
+            );
+        }
+    }
+    let n = built.len();
+    assert_eq!(
+        kept_counts[0].1, n,
+        "single scattering does not depend on albedo: {kept_counts:?} of {n}"
+    );
+    assert!(
+        kept_counts[1].1 < n,
+        "removing a block drops some: {kept_counts:?}"
+    );
+    assert_eq!(
+        kept_counts[2].1, 0,
+        "an edit of every bin drops all: {kept_counts:?}"
+    );
+}
+
+fn lum_of(c: [f64; 3]) -> f64 {
+    0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]
+}
+
+fn read(technique: &Irradiance) -> Vec<[f32; 3]> {
+    let engine = engine();
+    let bytes = engine.gpu.read_buffer(technique.output()).unwrap();
+    let sums: &[[f32; 4]] = bytemuck::cast_slice(&bytes);
+    sums.iter()
+        .map(|s| {
+            let n = s[3].max(1.0);
+            [s[0] / n, s[1] / n, s[2] / n]
+        })
+        .collect()
+}
+
+#[test]
+fn a_fixed_schedule_repeats_bit_for_bit() {
+    let (_, volume) = sphere(32);
+    let s = lit_sphere(32);
+    let engine = engine();
+    let mut runs = Vec::new();
+    for _ in 0..2 {
+        let mut t = Irradiance::new(engine, volume.clone(), &s, fixed(Default::default())).unwrap();
+        for _ in 0..12 {
+            t.frame(engine, &s, true).unwrap();
+        }
+        let bytes = engine.gpu.read_buffer(t.output()).unwrap();
+        runs.push((bytes, t.entries(), t.cache_stats()));
+    }
+    assert!(runs[0].2.entries > 0);
+    assert_eq!(runs[0].1, runs[1].1, "entries differ");
+    assert!(runs[0].0 == runs[1].0, "pictures differ");
+}
+
+#[test]
+fn the_update_shrinks_zones_where_entries_disagree() {
+    // A hard shadow edge (directional light only, no environment): entries on either side of
+    // it disagree where their zones overlap.
+    let (_, volume) = sphere(40);
+    let s = scene(
+        ramp_tf(0.8),
+        vec![Light::Directional {
+            direction: [1.0, -0.2, -0.3],
+            irradiance: [4.0; 3],
+        }],
+        25.0,
+        48,
+        1000,
+    );
+    let config = IrradianceConfig {
+        fixed_rounds: Some((4, 4)),
+        bounces: 1,
+        ..Default::default()
+    };
+    let engine = engine();
+    let mut t = Irradiance::new(engine, volume, &s, config).unwrap();
+    for _ in 0..30 {
+        t.frame(engine, &s, true).unwrap();
+    }
+    let stats = t.cache_stats();
+    assert!(stats.radius_reductions > 0, "{stats:?}");
+    let snapshot = t.snapshot(engine).unwrap();
+    let voxel = 1.0 / 40.0;
+    let mut shrunk = 0;
+    for (e, r) in snapshot.entries.iter().zip(snapshot.radii.chunks_exact(6)) {
+        for (h, &radius) in r.iter().enumerate() {
+            let initial = voxlight_engine::techniques::irradiance::validity_radius(
+                e.sigma[h][3],
+                2.0 * voxel,
+                0.1,
+                0.01 * voxel,
+                16.0 * voxel,
+            );
+            assert!(
+                radius <= initial * 1.0001,
+                "a radius grew: {} > {initial}",
+                radius
+            );
+            assert!(
+                radius >= 0.01 * voxel * 0.999,
+                "a radius fell below the minimum"
+            );
+            if radius < initial * 0.999 {
+                shrunk += 1;
+            }
+        }
+    }
+    assert!(shrunk > 0, "no radius shrank ({stats:?})");
+}
+
+#[test]
+fn an_anisotropic_phase_function_renders_plain_monte_carlo() {
+    let (_, volume) = sphere(32);
+    let mut s = lit_sphere(32);
+    s.params.g = 0.5;
+    let mut renderer = irradiance(volume.clone(), &s, fixed(IrradianceConfig::default()));
+    let hdr = run(&mut renderer, &s, 64);
+    let stats = details(&renderer);
+    assert_eq!(stats.cache_active, Some(false));
+    assert_eq!(stats.cache_entries, Some(0));
+    let want = reference("pathtrace", volume, &s, 256);
+    let (g, w) = (lum_of(mean(&hdr)), lum_of(mean(&want)));
+    assert!((g / w - 1.0).abs() < 0.02, "mean {g} vs pathtrace {w}");
+}
+
+#[test]
+fn a_cache_larger_than_the_session_budget_is_refused() {
+    let (_, volume) = sphere(16);
+    let s = lit_sphere(16);
+    let config = IrradianceConfig {
+        entry_capacity: u32::MAX / 4,
+        ..Default::default()
+    };
+    match Irradiance::new(engine(), volume, &s, config) {
+        Err(voxlight_engine::EngineError::OutOfMemory { needed, available }) => {
+            assert!(needed > available)
+        }
+        Err(other) => panic!("wrong error {other}"),
+        Ok(_) => panic!("a huge cache was allocated"),
+    }
+}

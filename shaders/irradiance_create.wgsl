@@ -1,0 +1,100 @@
+// Technique `irradiance`, the cache-entry creation procedure (§4.2): one round per dispatch, one
+// workgroup per pending request. 56 threads each take one irradiance sample at one of the seven
+// estimation points (the centre and ± Δ along the axes of the entry's local frame), eight per
+// point; the seven points share their random numbers (common random numbers make the ratios
+// E_Δ / E_0 of Eq. 6 far less noisy than independent estimates). When the centre estimate meets
+// the error criterion of Eq. 5 (or has max_samples), the entry is finished: its virtual
+// extinction coefficients per half-axis (Eq. 6); its radii follow from them when the requests
+// pass stores it. Rust twin: server/engine/src/passes/irradiance.rs.
+
+const SAMPLES_PER_ROUND: u32 = 8u;
+
+var<workgroup> point_sums: array<vec4<f32>, 64>;
+var<workgroup> hist: array<atomic<u32>, 4>;
+
+@compute @workgroup_size(64)
+fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) t: u32) {
+    if (t < 4u) {
+        atomicStore(&hist[t], 0u);
+    }
+    workgroupBarrier();
+    let slot = wid.x;
+    let req = requests[slot];
+    let is_pending = req.state == REQUEST_PENDING;
+    let point = t / SAMPLES_PER_ROUND;
+    var estimate = vec4<f32>(0.0);
+    if (is_pending && point < 7u) {
+        recording = true;
+        recorded_opacity = vec2<u32>(0u);
+        recorded_colour = vec2<u32>(0u);
+        var rng = rng_new(scene.seed ^ CREATE_SALT, req.key, req.count + t % SAMPLES_PER_ROUND);
+        var y = req.position;
+        if (point > 0u) {
+            let half_axis = point - 1u;
+            let frame = orthonormal_basis(req.normal);
+            let sign = select(1.0, -1.0, (half_axis & 1u) == 1u);
+            y += frame[half_axis / 2u] * (sign * params.delta);
+        }
+        let e = irradiance_sample(y, &rng);
+        let lum = luminance(e);
+        estimate = vec4<f32>(e, lum * lum);
+        atomicOr(&hist[0], recorded_opacity.x);
+        atomicOr(&hist[1], recorded_opacity.y);
+        atomicOr(&hist[2], recorded_colour.x);
+        atomicOr(&hist[3], recorded_colour.y);
+    }
+    point_sums[t] = estimate;
+    workgroupBarrier();
+    if (t < 7u) {
+        var total = vec4<f32>(0.0);
+        for (var k = 0u; k < SAMPLES_PER_ROUND; k++) {
+            total += point_sums[t * SAMPLES_PER_ROUND + k];
+        }
+        point_sums[t * SAMPLES_PER_ROUND] = total;
+    }
+    workgroupBarrier();
+    if (t != 0u || !is_pending) {
+        return;
+    }
+    var r = req;
+    for (var p = 0u; p < 7u; p++) {
+        r.sums[p] += point_sums[p * SAMPLES_PER_ROUND];
+    }
+    r.count += SAMPLES_PER_ROUND;
+    r.opacity_lo |= atomicLoad(&hist[0]);
+    r.opacity_hi |= atomicLoad(&hist[1]);
+    r.colour_lo |= atomicLoad(&hist[2]);
+    r.colour_hi |= atomicLoad(&hist[3]);
+    let n = f32(r.count);
+    let mean = r.sums[0].rgb / n;
+    let mean_lum = luminance(mean);
+    let variance = max(0.0, (r.sums[0].w - n * mean_lum * mean_lum) / max(n - 1.0, 1.0));
+    // Eq. 5: the 95% confidence interval within γ/(γ + 1) of the estimate.
+    let converged = 1.96 * sqrt(variance / n) <= params.gamma / (params.gamma + 1.0) * mean_lum;
+    if ((r.count >= params.min_samples && converged) || r.count >= params.max_samples) {
+        var entry: CacheEntry;
+        entry.position = r.position;
+        entry.key = r.key;
+        entry.normal = r.normal;
+        entry.samples = r.count;
+        entry.irradiance = mean;
+        let e0 = max(mean, vec3<f32>(IRRADIANCE_FLOOR));
+        let lum0 = max(mean_lum, IRRADIANCE_FLOOR);
+        // Coefficients beyond this would only extrapolate noise across a voxel or two.
+        let limit = log(1e6) / params.delta;
+        for (var h = 0u; h < 6u; h++) {
+            let e = r.sums[1u + h].rgb / n;
+            let rgb = -log(max(e, vec3<f32>(IRRADIANCE_FLOOR)) / e0) / params.delta;
+            let lum = -log(max(luminance(e), IRRADIANCE_FLOOR) / lum0) / params.delta;
+            entry.sigma[h] = clamp(vec4<f32>(rgb, lum), vec4<f32>(-limit), vec4<f32>(limit));
+        }
+        entry.opacity_lo = r.opacity_lo;
+        entry.opacity_hi = r.opacity_hi;
+        entry.colour_lo = r.colour_lo;
+        entry.colour_hi = r.colour_hi;
+        entry.pad0 = 0u;
+        r.entry = entry;
+        r.state = REQUEST_DONE;
+    }
+    requests[slot] = r;
+}

@@ -1,0 +1,145 @@
+// Technique `irradiance`, once per frame after the creation rounds: one workgroup turns this
+// frame's claims into requests and stores the finished entries. First, every lock (octree node
+// or image block) claimed by a cache miss and not held by a pending request gets a request,
+// in lock order, while fewer than max_pending are pending; its local frame is oriented along
+// the extinction gradient there (§4.2). Then the finished requests' entries are appended to the
+// cache in request order (with the radii of Eq. 9–10), their locks released, and the pending
+// requests moved together. Everything is in a fixed order, so a run is repeatable.
+// Rust twin: server/engine/src/passes/irradiance.rs.
+
+const WG: u32 = 256u;
+
+var<workgroup> scan_buf: array<u32, 256>;
+var<workgroup> start_entries: u32;
+
+// Exclusive prefix sum of `value` over the workgroup, and the total (uniform).
+fn exclusive_scan(t: u32, value: u32) -> vec2<u32> {
+    scan_buf[t] = value;
+    workgroupBarrier();
+    for (var offset = 1u; offset < WG; offset <<= 1u) {
+        var add = 0u;
+        if (t >= offset) {
+            add = scan_buf[t - offset];
+        }
+        workgroupBarrier();
+        scan_buf[t] += add;
+        workgroupBarrier();
+    }
+    let inclusive = scan_buf[t];
+    let total = workgroupUniformLoad(&scan_buf[WG - 1u]);
+    return vec2<u32>(inclusive - value, total);
+}
+
+@compute @workgroup_size(256)
+fn main(@builtin(local_invocation_index) t: u32) {
+    if (t == 0u) {
+        start_entries = atomicLoad(&words[COUNTER_ENTRIES]);
+    }
+    var entry_count = workgroupUniformLoad(&start_entries);
+    let screen_locking = (params.flags & FLAG_SCREEN_LOCKING) != 0u;
+    var slots = params.node_count;
+    var claim_base = params.node_claim_offset;
+    var held_base = params.node_held_offset;
+    if (screen_locking) {
+        slots = params.block_count;
+        claim_base = params.block_claim_offset;
+        held_base = params.block_held_offset;
+    }
+    let may_create = (params.flags & FLAG_NO_CREATION) == 0u;
+
+    // Claims → requests, while both the pending list and the cache have room.
+    var pending = params.pending;
+    var limit = pending;
+    if (may_create) {
+        let room_left = params.entry_capacity - min(entry_count, params.entry_capacity);
+        limit = max(pending, min(params.max_pending, room_left));
+    }
+    for (var base = 0u; base < slots; base += WG) {
+        let lock = base + t;
+        var claim = NO_CLAIM;
+        var wanted = 0u;
+        if (lock < slots) {
+            claim = atomicExchange(&words[claim_base + lock], NO_CLAIM);
+            if (claim != NO_CLAIM && atomicLoad(&words[held_base + lock]) == 0u) {
+                wanted = 1u;
+            }
+        }
+        let scan = exclusive_scan(t, wanted);
+        let slot = pending + scan.x;
+        if (wanted == 1u) {
+            if (slot < limit) {
+                let position = pixel_aux[claim & 0x00ffffffu].xyz;
+                var r: Request;
+                r.position = position;
+                r.key = pcg_hash(claim ^ pcg_hash(params.frame ^ CREATE_SALT));
+                r.normal = extinction_normal(position);
+                r.lock = lock;
+                for (var p = 0u; p < 7u; p++) {
+                    r.sums[p] = vec4<f32>(0.0);
+                }
+                r.count = 0u;
+                r.state = REQUEST_PENDING;
+                // The frame depends on the extinction around the centre.
+                let cell = cell_of(box_relative(position));
+                let bins = cell_bins[cell_index(cell)];
+                r.opacity_lo = bins.x;
+                r.opacity_hi = bins.y;
+                r.colour_lo = 0u;
+                r.colour_hi = 0u;
+                r.pad0 = 0u;
+                r.pad1 = 0u;
+                requests[slot] = r;
+                atomicStore(&words[held_base + lock], 1u);
+                atomicAdd(&words[COUNTER_ISSUED], 1u);
+            } else {
+                atomicAdd(&words[COUNTER_DROPPED], 1u);
+            }
+        }
+        pending = min(pending + scan.y, limit);
+    }
+    storageBarrier();
+    workgroupBarrier();
+
+    // Finished requests → entries; the rest move together.
+    var kept = 0u;
+    for (var base = 0u; base < pending; base += WG) {
+        let i = base + t;
+        var r: Request;
+        var done = 0u;
+        var keep = 0u;
+        if (i < pending) {
+            r = requests[i];
+            done = select(0u, 1u, r.state == REQUEST_DONE);
+            keep = 1u - done;
+        }
+        let done_scan = exclusive_scan(t, done);
+        let keep_scan = exclusive_scan(t, keep);
+        storageBarrier();
+        workgroupBarrier();
+        if (done == 1u) {
+            let e = entry_count + done_scan.x;
+            if (e < params.entry_capacity) {
+                entries[e] = r.entry;
+                for (var h = 0u; h < 6u; h++) {
+                    let radius = validity_radius(r.entry.sigma[h].w);
+                    atomicStore(&radii[e * 6u + h], bitcast<u32>(radius));
+                }
+                atomicAdd(&words[COUNTER_CREATED], 1u);
+            } else {
+                atomicAdd(&words[COUNTER_LOST], 1u);
+            }
+            atomicStore(&words[held_base + r.lock], 0u);
+        }
+        if (keep == 1u) {
+            requests[kept + keep_scan.x] = r;
+        }
+        entry_count = min(entry_count + done_scan.y, params.entry_capacity);
+        kept += keep_scan.y;
+        storageBarrier();
+        workgroupBarrier();
+    }
+    if (t == 0u) {
+        atomicStore(&words[COUNTER_PENDING], kept);
+        atomicStore(&words[COUNTER_ENTRIES], entry_count);
+    }
+}
