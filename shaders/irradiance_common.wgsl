@@ -48,7 +48,9 @@ struct IrradianceParams {
     priority_offset: u32,
     // Smallest voxel edge (world units).
     voxel: f32,
-    pad0: u32,
+    // Irradiance (luminance) below which Eq. 5's error bound stops shrinking: an absolute
+    // floor for dark regions, a fraction of the scene's brightest unshadowed irradiance.
+    dark_floor: f32,
     pad1: u32,
     pad2: u32,
 }
@@ -110,6 +112,9 @@ const FLAG_NO_CREATION: u32 = 4u;
 // Historygrams of the values sampled (and of the cells skipped as empty) instead of the
 // whole value range of every macrocell crossed.
 const FLAG_SAMPLED_HISTORYGRAMS: u32 = 8u;
+// Camera rays pick their scattering event along a jittered march (march.wgsl) instead of
+// delta tracking it.
+const FLAG_MARCHED_VIEW: u32 = 16u;
 
 const REQUEST_PENDING: u32 = 0u;
 const REQUEST_DONE: u32 = 1u;

@@ -1,13 +1,14 @@
 // Technique `irradiance`, the cache-entry creation procedure (§4.2): one round per dispatch, one
-// workgroup per pending request. 56 threads each take one irradiance sample at one of the seven
-// estimation points (the centre and ± Δ along the axes of the entry's local frame), eight per
-// point; the seven points share their random numbers (common random numbers make the ratios
-// E_Δ / E_0 of Eq. 6 far less noisy than independent estimates). When the centre estimate meets
+// workgroup per pending request. 63 threads each take one irradiance sample at one of the seven
+// estimation points (the centre and ± Δ along the axes of the entry's local frame), nine per
+// point; the seven points of a sample share their random numbers (common random numbers make
+// the ratios E_Δ / E_0 of Eq. 6 far less noisy than independent estimates) and neighbouring
+// threads, so the lanes that run together trace nearly the same paths. When the centre estimate meets
 // the error criterion of Eq. 5 (or has max_samples), the entry is finished: its virtual
 // extinction coefficients per half-axis (Eq. 6); its radii follow from them when the requests
 // pass stores it. Rust twin: server/engine/src/passes/irradiance.rs.
 
-const SAMPLES_PER_ROUND: u32 = 8u;
+const SAMPLES_PER_ROUND: u32 = 9u;
 
 var<workgroup> point_sums: array<vec4<f32>, 64>;
 var<workgroup> hist: array<atomic<u32>, 4>;
@@ -21,13 +22,14 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     let slot = wid.x;
     let req = requests[slot];
     let is_pending = req.state == REQUEST_PENDING;
-    let point = t / SAMPLES_PER_ROUND;
+    let point = t % 7u;
+    let sample_index = t / 7u;
     var estimate = vec4<f32>(0.0);
-    if (is_pending && point < 7u) {
+    if (is_pending && sample_index < SAMPLES_PER_ROUND) {
         recording = true;
         recorded_opacity = vec2<u32>(0u);
         recorded_colour = vec2<u32>(0u);
-        var rng = rng_new(scene.seed ^ CREATE_SALT, req.key, req.count + t % SAMPLES_PER_ROUND);
+        var rng = rng_new(scene.seed ^ CREATE_SALT, req.key, req.count + sample_index);
         var y = req.position;
         if (point > 0u) {
             let half_axis = point - 1u;
@@ -45,12 +47,15 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     }
     point_sums[t] = estimate;
     workgroupBarrier();
+    var total = vec4<f32>(0.0);
     if (t < 7u) {
-        var total = vec4<f32>(0.0);
         for (var k = 0u; k < SAMPLES_PER_ROUND; k++) {
-            total += point_sums[t * SAMPLES_PER_ROUND + k];
+            total += point_sums[k * 7u + t];
         }
-        point_sums[t * SAMPLES_PER_ROUND] = total;
+    }
+    workgroupBarrier();
+    if (t < 7u) {
+        point_sums[t] = total;
     }
     workgroupBarrier();
     if (t != 0u || !is_pending) {
@@ -58,7 +63,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     }
     var r = req;
     for (var p = 0u; p < 7u; p++) {
-        r.sums[p] += point_sums[p * SAMPLES_PER_ROUND];
+        r.sums[p] += point_sums[p];
     }
     r.count += SAMPLES_PER_ROUND;
     r.opacity_lo |= atomicLoad(&hist[0]);
@@ -69,8 +74,10 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     let mean = r.sums[0].rgb / n;
     let mean_lum = luminance(mean);
     let variance = max(0.0, (r.sums[0].w - n * mean_lum * mean_lum) / max(n - 1.0, 1.0));
-    // Eq. 5: the 95% confidence interval within γ/(γ + 1) of the estimate.
-    let converged = 1.96 * sqrt(variance / n) <= params.gamma / (params.gamma + 1.0) * mean_lum;
+    // Eq. 5: the 95% confidence interval within γ/(γ + 1) of the estimate (of the dark floor
+    // where the estimate is darker: there the error is absolute, not relative).
+    let bound = params.gamma / (params.gamma + 1.0) * max(mean_lum, params.dark_floor);
+    let converged = 1.96 * sqrt(variance / n) <= bound;
     if ((r.count >= params.min_samples && converged) || r.count >= params.max_samples) {
         var entry: CacheEntry;
         entry.position = r.position;

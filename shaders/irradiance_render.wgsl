@@ -1,5 +1,6 @@
 // Technique `irradiance`, the rendering procedure: one 16 × 8 pixel block per workgroup (the
-// paper's §7), one sample per pixel. A camera ray is delta tracked to its first collision; where
+// paper's §7), one sample per pixel. A camera ray finds its first scattering event (delta
+// tracked, or picked along a jittered march: FLAG_MARCHED_VIEW); where
 // the cache covers that point its irradiance is used (isotropic phase function: radiance =
 // albedo · E / 4π), elsewhere the path tracer continues from it (plain MCVR) and the miss
 // claims the creation of a new entry there: the deepest octree node holding the point
@@ -36,29 +37,43 @@ fn main(
         let px = vec2<f32>(f32(x) + rng_next(&rng), f32(y) + rng_next(&rng));
         let dir = camera_ray_dir(scene, px);
         let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
-        var event = vec2<f32>(0.0, 0.0);
+        // The first scattering event: delta tracked (Exposure Render), or picked among a
+        // jittered march's samples in proportion to T·(1 − e^(−σt·dt)) with the march's total
+        // weight and transmittance exact (no variance from whether the ray collides).
+        var weight = 0.0;
+        var transmit = 1.0;
+        var p = vec3<f32>(0.0);
         if (hit.x < hit.y) {
-            event = delta_track(scene.eye, dir, hit.x, hit.y, &rng);
+            if ((params.flags & FLAG_MARCHED_VIEW) != 0u) {
+                let picked = pick_scattering(scene.eye, dir, hit.x, hit.y, &rng);
+                weight = picked.weight_sum;
+                transmit = picked.transmit;
+                p = picked.position;
+            } else {
+                let event = delta_track(scene.eye, dir, hit.x, hit.y, &rng);
+                weight = event.y;
+                transmit = 1.0 - event.y;
+                p = scene.eye + dir * event.x;
+            }
         }
-        var radiance = scene.env_radiance;
-        if (event.y != 0.0) {
-            let p = scene.eye + dir * event.x;
+        var radiance = scene.env_radiance * transmit;
+        if (weight > 0.0) {
             let albedo = medium_at(p).rgb;
             var cached = Lookup(0.0, vec3<f32>(0.0), 0u);
             if (cache_on) {
                 cached = cache_lookup(p);
                 atomicAdd(&block_rays, 1u);
             }
+            var scattered = vec3<f32>(0.0);
             if (cached.weight > 0.0) {
-                radiance = albedo * cached.irradiance * INV_4PI;
+                scattered = albedo * cached.irradiance * INV_4PI;
             } else {
-                radiance = vec3<f32>(0.0);
                 if (any(albedo > vec3<f32>(0.0))) {
-                    radiance = albedo * direct_light(p, dir, &rng);
+                    scattered = albedo * direct_light(p, dir, &rng);
                     let u1 = rng_next(&rng);
                     let u2 = rng_next(&rng);
                     let next = sample_hg(dir, scene.g, u1, u2);
-                    radiance += trace_radiance(p, next, albedo, 1u, params.bounces, &rng);
+                    scattered += trace_radiance(p, next, albedo, 1u, params.bounces, &rng);
                 }
                 if (cache_on) {
                     atomicAdd(&block_misses, 1u);
@@ -72,6 +87,7 @@ fn main(
                     }
                 }
             }
+            radiance += weight * scattered;
         }
         accum[pixel] = before + vec4<f32>(radiance, 1.0);
         let lum = luminance(radiance);

@@ -95,9 +95,9 @@ pub struct TfEditBench<'a> {
 }
 
 /// One TF edit of a scenario: a name and the edited TF.
-struct Edit {
-    name: &'static str,
-    tf: TransferFunction,
+pub(crate) struct Edit {
+    pub name: &'static str,
+    pub tf: TransferFunction,
 }
 
 fn tf_point(value: f32, color: [f32; 3], opacity: f32) -> TfPoint {
@@ -172,16 +172,20 @@ fn edits_for(
     ]
 }
 
-struct Scenario {
-    name: &'static str,
-    dataset: String,
-    volume: voxlight_volumes::Volume,
-    camera: Camera,
-    tf: TransferFunction,
-    edits: Vec<Edit>,
+/// A volume, view and TF, with the edits `bench tf-edit` measures on it.
+pub(crate) struct Scenario {
+    pub name: &'static str,
+    pub dataset: String,
+    pub volume: voxlight_volumes::Volume,
+    pub camera: Camera,
+    pub tf: TransferFunction,
+    pub edits: Vec<Edit>,
 }
 
-fn tf_edit_scenarios(options: &TfEditBench) -> anyhow::Result<Vec<Scenario>> {
+/// The scenarios in the spirit of the historygram paper's Table 1: the Cornell phantom, the
+/// engine CT and the chest CT, each with a colour edit, a removed material, the outer layer
+/// and a global edit.
+pub(crate) fn tf_edit_scenarios(options: &TfEditBench) -> anyhow::Result<Vec<Scenario>> {
     let mut out = Vec::new();
     let mut cornell = voxlight_volumes::phantom("cornell", options.max_dim.min(64))?;
     cornell.name = "phantom:cornell".to_owned();
@@ -285,7 +289,7 @@ pub fn tf_edit(options: &TfEditBench) -> anyhow::Result<serde_json::Value> {
     use voxlight_engine::techniques::photon::{Invalidation, Photon, PhotonParams};
     if options.technique != "photon" {
         anyhow::bail!(
-            "bench tf-edit measures incremental TF updates; only `photon` has them (got `{}`)",
+            "bench tf-edit measures incremental TF updates of `photon` and `irradiance` (got `{}`)",
             options.technique
         );
     }

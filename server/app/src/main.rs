@@ -7,7 +7,10 @@ use std::time::Duration;
 use anyhow::Context;
 use clap::{Parser, Subcommand};
 use tokio_util::sync::CancellationToken;
-use voxlight_server::{Server, ServerConfig, bench, bench_manylight, loadgen, offline};
+use voxlight_engine::techniques::irradiance::{DEFAULT_BOUNCES, Historygrams};
+use voxlight_server::{
+    Server, ServerConfig, bench, bench_irradiance, bench_manylight, loadgen, offline,
+};
 
 #[derive(Parser)]
 #[command(
@@ -102,7 +105,7 @@ enum Command {
         #[arg(long)]
         pfm: Option<PathBuf>,
     },
-    /// Run a benchmark (`raymarch`, `tf-edit`, `manylight`).
+    /// Run a benchmark (`raymarch`, `tf-edit`, `manylight`, `convergence`).
     Bench {
         name: String,
         /// Technique measured by `tf-edit`.
@@ -120,9 +123,11 @@ enum Command {
         /// `tf-edit`: photon passes in the map.
         #[arg(long, default_value_t = 4)]
         passes: u32,
-        /// `tf-edit`: scattering events stored per photon path.
-        #[arg(long, default_value_t = 2)]
-        bounces: u32,
+        /// `tf-edit --technique photon`: scattering events stored per photon path (default 2);
+        /// `convergence`, `tf-edit --technique irradiance`: most scattering events on a camera
+        /// path (default 1024; 1 is the paper's single scattering).
+        #[arg(long)]
+        bounces: Option<u32>,
         /// `tf-edit`: view-ray segments per pixel.
         #[arg(long, default_value_t = 8)]
         segments: u32,
@@ -150,9 +155,30 @@ enum Command {
         /// `manylight`: AVSM nodes per texel.
         #[arg(long, default_value_t = 8)]
         nodes: u32,
-        /// `manylight`: samples per pixel of the `pathtrace` reference.
-        #[arg(long, default_value_t = 64)]
-        reference_spp: u32,
+        /// `manylight`, `convergence`, `tf-edit --technique irradiance`: samples per pixel of
+        /// the reference (defaults 64, 1024, 512).
+        #[arg(long)]
+        reference_spp: Option<u32>,
+        /// `convergence`, `tf-edit --technique irradiance`: frames measured per run (defaults
+        /// 200 and 40).
+        #[arg(long)]
+        frames: Option<u32>,
+        /// `convergence`: light setups (1, 3, 4 lights as in the paper's Table 2).
+        #[arg(long, value_delimiter = ',', default_value = "1,3,4")]
+        lights: Vec<u32>,
+        /// `convergence`: datasets of ../shared/data.
+        #[arg(long, value_delimiter = ',', default_value = "bonsai,chest,engine")]
+        datasets: Vec<String>,
+        /// `convergence`: write each case's pictures (PNG) to this folder.
+        #[arg(long)]
+        dump: Option<PathBuf>,
+        /// `tf-edit --technique irradiance`: frames that build the cache before each edit.
+        #[arg(long, default_value_t = 120)]
+        build_frames: u32,
+        /// `tf-edit --technique irradiance`: what entries' historygrams record (`samples` or
+        /// `cells`).
+        #[arg(long, default_value = "samples")]
+        historygrams: String,
     },
 }
 
@@ -274,6 +300,12 @@ fn run() -> anyhow::Result<()> {
             face_res,
             nodes,
             reference_spp,
+            frames,
+            lights,
+            datasets,
+            build_frames,
+            historygrams,
+            dump,
         } => {
             let data = data.or_else(voxlight_volumes::testdata::shared_data_dir);
             let result = match name.as_str() {
@@ -282,17 +314,53 @@ fn run() -> anyhow::Result<()> {
                     sizes: &sizes,
                     iterations: iterations.max(1),
                 })?,
-                "tf-edit" => bench::tf_edit(&bench::TfEditBench {
-                    data_dir: data.as_deref(),
-                    technique: &technique,
-                    size: size.max(1),
-                    max_dim: max_dim.max(8),
-                    photons_per_pass: photons.max(1),
-                    passes: passes.max(1),
-                    bounces: bounces.max(1),
-                    segments: segments.max(1),
-                    repeats: repeats.max(1),
-                })?,
+                "tf-edit" => {
+                    let scenarios = bench::TfEditBench {
+                        data_dir: data.as_deref(),
+                        technique: &technique,
+                        size: size.max(1),
+                        max_dim: max_dim.max(8),
+                        photons_per_pass: photons.max(1),
+                        passes: passes.max(1),
+                        bounces: bounces.unwrap_or(2).max(1),
+                        segments: segments.max(1),
+                        repeats: repeats.max(1),
+                    };
+                    if technique == "irradiance" {
+                        let historygrams = match historygrams.as_str() {
+                            "samples" => Historygrams::Samples,
+                            "cells" => Historygrams::Cells,
+                            other => anyhow::bail!(
+                                "--historygrams is `samples` or `cells`, not `{other}`"
+                            ),
+                        };
+                        bench_irradiance::tf_edit(&bench_irradiance::IrradianceTfEditBench {
+                            scenarios: bench::TfEditBench {
+                                bounces: bounces.unwrap_or(DEFAULT_BOUNCES).max(1),
+                                ..scenarios
+                            },
+                            build_frames: build_frames.max(1),
+                            frames: frames.unwrap_or(40).max(1),
+                            reference_spp: reference_spp.unwrap_or(512).max(2),
+                            historygrams,
+                        })?
+                    } else {
+                        bench::tf_edit(&scenarios)?
+                    }
+                }
+                "convergence" => {
+                    bench_irradiance::convergence(&bench_irradiance::ConvergenceBench {
+                        data_dir: data.as_deref(),
+                        size: size.max(8),
+                        max_dim: max_dim.max(8),
+                        frames: frames.unwrap_or(200).max(1),
+                        reference_spp: reference_spp.unwrap_or(1024).max(2),
+                        lights: &lights,
+                        datasets: &datasets,
+                        bounces: bounces.unwrap_or(DEFAULT_BOUNCES).max(1),
+                        dump: dump.as_deref(),
+                    })?
+                }
                 "manylight" => bench_manylight::manylight(&bench_manylight::ManylightBench {
                     data_dir: data.as_deref(),
                     size: size.max(8),
@@ -300,10 +368,10 @@ fn run() -> anyhow::Result<()> {
                     face_res: face_res.max(1),
                     nodes,
                     iterations: iterations.max(1),
-                    reference_spp: reference_spp.max(1),
+                    reference_spp: reference_spp.unwrap_or(64).max(1),
                 })?,
                 other => anyhow::bail!(
-                    "unknown benchmark `{other}`; available: raymarch, tf-edit, manylight"
+                    "unknown benchmark `{other}`; available: raymarch, tf-edit, manylight, convergence"
                 ),
             };
             if json {

@@ -39,7 +39,7 @@ pub struct IrradianceParams {
     pub bounces: u32,
     pub priority_offset: u32,
     pub voxel: f32,
-    pub pad0: u32,
+    pub dark_floor: f32,
     pub pad1: u32,
     pub pad2: u32,
 }
@@ -119,6 +119,7 @@ pub const FLAG_CACHE: u32 = 1;
 pub const FLAG_SCREEN_LOCKING: u32 = 2;
 pub const FLAG_NO_CREATION: u32 = 4;
 pub const FLAG_SAMPLED_HISTORYGRAMS: u32 = 8;
+pub const FLAG_MARCHED_VIEW: u32 = 16;
 
 pub const COUNTER_HITS: usize = 0;
 pub const COUNTER_MISSES: usize = 1;
@@ -137,7 +138,7 @@ pub const BLOCK_WIDTH: u32 = 16;
 pub const BLOCK_HEIGHT: u32 = 8;
 
 /// Irradiance samples per estimation point and creation round (SAMPLES_PER_ROUND).
-pub const SAMPLES_PER_ROUND: u32 = 8;
+pub const SAMPLES_PER_ROUND: u32 = 9;
 
 /// `blocks` priority of a block with a pixel of fewer than two samples (PRIORITY_UNSAMPLED).
 pub const PRIORITY_UNSAMPLED: f32 = 1e30;
@@ -266,8 +267,10 @@ impl IrradiancePasses {
         })
     }
 
-    /// Encodes one pass of `pipeline` with dispatch descriptor `slot` over `workgroups`.
-    pub fn encode(
+    /// Encodes one pass of `pipeline` with dispatch descriptor `slot` over `workgroups`, with
+    /// optional timestamps.
+    #[allow(clippy::too_many_arguments)]
+    pub fn encode_timed(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         label: &str,
@@ -275,13 +278,14 @@ impl IrradiancePasses {
         bind_group: &wgpu::BindGroup,
         slot: u32,
         workgroups: u32,
+        timestamp_writes: Option<wgpu::ComputePassTimestampWrites>,
     ) {
         if workgroups == 0 {
             return;
         }
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some(label),
-            timestamp_writes: None,
+            timestamp_writes,
         });
         pass.set_pipeline(pipeline);
         pass.set_bind_group(0, bind_group, &[(slot as u64 * DISPATCH_STRIDE) as u32]);

@@ -31,14 +31,14 @@ use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use voxlight_protocol::TransferFunction;
+use voxlight_protocol::{Light, TransferFunction};
 
 use crate::passes::irradiance::{
     BLOCK_HEIGHT, BLOCK_WIDTH, COUNTER_CREATED, COUNTER_DROPPED, COUNTER_ENTRIES, COUNTER_HITS,
     COUNTER_ISSUED, COUNTER_LOST, COUNTER_MISSES, COUNTER_PENDING, COUNTER_REDUCTIONS,
-    COUNTER_WORDS, CacheEntry, DISPATCH_STRIDE, DispatchInfo, FLAG_CACHE, FLAG_NO_CREATION,
-    FLAG_SAMPLED_HISTORYGRAMS, FLAG_SCREEN_LOCKING, IrradianceBindings, IrradianceParams,
-    PRIORITY_UNSAMPLED, Request, UPDATE_WORKGROUP,
+    COUNTER_WORDS, CacheEntry, DISPATCH_STRIDE, DispatchInfo, FLAG_CACHE, FLAG_MARCHED_VIEW,
+    FLAG_NO_CREATION, FLAG_SAMPLED_HISTORYGRAMS, FLAG_SCREEN_LOCKING, IrradianceBindings,
+    IrradianceParams, PRIORITY_UNSAMPLED, Request, UPDATE_WORKGROUP,
 };
 use crate::technique::{StepReport, Technique, TechniqueStats};
 use crate::techniques::progressive::{Estimator, Progressive, accum_bytes};
@@ -78,6 +78,18 @@ pub enum Historygrams {
     Cells,
 }
 
+/// How a camera ray finds its scattering event.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ViewEvent {
+    /// Delta tracking to the first collision, as Exposure Render: a ray either collides or
+    /// not, a variance of its own in thin media.
+    DeltaTracking,
+    /// Picked among a jittered march's samples in proportion to T·(1 − e^(−σt·dt)), the
+    /// march's total weight and transmittance exact (the `raymarch` estimator): only where
+    /// along the ray remains random.
+    Marched,
+}
+
 /// The knobs of `irradiance`; the defaults are the paper's Table 1.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct IrradianceConfig {
@@ -110,19 +122,26 @@ pub struct IrradianceConfig {
     /// Samples per estimation point before Eq. 5 may stop the estimate, and at most.
     pub min_samples: u32,
     pub max_samples: u32,
+    /// Where an entry's irradiance is darker than this fraction of the scene's brightest
+    /// unshadowed irradiance, Eq. 5 bounds its error relative to that floor instead: a shadowed
+    /// entry need not be estimated to 10% of almost nothing (the paper's purely relative
+    /// bound spends its largest sample counts where the picture is black).
+    pub dark_floor: f32,
     /// Frames of this length (equal-time comparisons): rendering gets what creation and update
     /// leave, as many blocks as fit. None: one image's worth of blocks per frame.
     pub frame_time: Option<Duration>,
     pub invalidation: Invalidation,
     pub historygrams: Historygrams,
+    pub view_event: ViewEvent,
     /// How often the octree is rebuilt with the radii the update shrank.
     pub rebuild_interval: Duration,
     /// Time over which the hit rate is measured.
     pub hit_rate_window: Duration,
     /// Creation and update rounds per frame instead of time fractions (repeatable runs).
     pub fixed_rounds: Option<(u32, u32)>,
-    /// The octree starts complete to this depth (8^depth object-space locks).
-    pub lock_depth: u32,
+    /// The octree starts complete to this depth (8^depth object-space locks). None: deep
+    /// enough for eight locks per pending entry (2–4).
+    pub lock_depth: Option<u32>,
 }
 
 impl Default for IrradianceConfig {
@@ -145,13 +164,15 @@ impl Default for IrradianceConfig {
             entry_capacity: 32768,
             min_samples: 16,
             max_samples: 256,
+            dark_floor: 0.05,
             frame_time: None,
             invalidation: Invalidation::Historygram,
             historygrams: Historygrams::Samples,
+            view_event: ViewEvent::Marched,
             rebuild_interval: Duration::from_millis(1000),
             hit_rate_window: Duration::from_millis(100),
             fixed_rounds: None,
-            lock_depth: 4,
+            lock_depth: None,
         }
     }
 }
@@ -172,6 +193,12 @@ const MAX_UPDATE_ROUNDS: u32 = 16;
 const DISPATCH_SLOTS: u32 = 128;
 /// Workgroups one dispatch may have along x.
 const MAX_WORKGROUPS: usize = 65535;
+/// The phases of a frame that are timed: rendering, creation, update, the rest.
+const PHASES: usize = 4;
+const PHASE_RENDER: usize = 0;
+const PHASE_CREATE: usize = 1;
+const PHASE_UPDATE: usize = 2;
+const PHASE_TAIL: usize = 3;
 /// The paper's pending entries and the viewport they were set for (Table 1).
 const PAPER_PENDING: f64 = 1000.0;
 const PAPER_PIXELS: f64 = 1280.0 * 720.0;
@@ -224,6 +251,123 @@ impl FrameTimes {
     }
 }
 
+/// Timestamps at the start and end of each phase of a frame, where the adapter has them.
+struct PhaseTimer {
+    query_set: wgpu::QuerySet,
+    resolved: wgpu::Buffer,
+}
+
+impl PhaseTimer {
+    fn new(engine: &Engine) -> Option<Self> {
+        let gpu = &engine.gpu;
+        gpu.has_timestamps.then(|| Self {
+            query_set: gpu.device.create_query_set(&wgpu::QuerySetDescriptor {
+                label: Some("irradiance phases"),
+                ty: wgpu::QueryType::Timestamp,
+                count: 2 * PHASES as u32,
+            }),
+            resolved: gpu.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("irradiance phase times"),
+                size: (16 * PHASES) as u64,
+                usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: false,
+            }),
+        })
+    }
+
+    fn writes(
+        &self,
+        phase: usize,
+        first: bool,
+        last: bool,
+    ) -> Option<wgpu::ComputePassTimestampWrites<'_>> {
+        (first || last).then_some(wgpu::ComputePassTimestampWrites {
+            query_set: &self.query_set,
+            beginning_of_pass_write_index: first.then_some(2 * phase as u32),
+            end_of_pass_write_index: last.then_some(2 * phase as u32 + 1),
+        })
+    }
+
+    fn resolve(&self, encoder: &mut wgpu::CommandEncoder, to: &wgpu::Buffer, offset: u64) {
+        encoder.resolve_query_set(&self.query_set, 0..2 * PHASES as u32, &self.resolved, 0);
+        encoder.copy_buffer_to_buffer(&self.resolved, 0, to, offset, (16 * PHASES) as u64);
+    }
+
+    /// Each used phase's time from the resolved ticks.
+    fn durations(
+        &self,
+        engine: &Engine,
+        ticks: &[u64],
+        used: [bool; PHASES],
+    ) -> [Duration; PHASES] {
+        let period = engine.gpu.queue.get_timestamp_period() as f64;
+        std::array::from_fn(|p| {
+            if used[p] {
+                let ns = ticks[2 * p + 1].saturating_sub(ticks[2 * p]) as f64 * period;
+                Duration::from_nanos(ns as u64)
+            } else {
+                Duration::ZERO
+            }
+        })
+    }
+}
+
+/// Where a frame's read-back buffer keeps what (byte offsets).
+struct ReadbackLayout {
+    counters: u64,
+    priorities: u64,
+    entries: u64,
+    timestamps: u64,
+    timestamp_bytes: u64,
+    total: u64,
+}
+
+impl ReadbackLayout {
+    fn new(blocks: u64, max_pending: u64) -> Self {
+        let counters = (COUNTER_WORDS * 4) as u64;
+        let priorities = counters;
+        let entries = (priorities + blocks * 4).next_multiple_of(16);
+        let timestamps =
+            (entries + max_pending * size_of::<CacheEntry>() as u64).next_multiple_of(16);
+        let timestamp_bytes = (16 * PHASES) as u64;
+        Self {
+            counters,
+            priorities,
+            entries,
+            timestamps,
+            timestamp_bytes,
+            total: timestamps + timestamp_bytes,
+        }
+    }
+}
+
+/// Exponential smoothing of a measured cost.
+fn smooth(old: Option<f64>, new: f64) -> f64 {
+    match old {
+        Some(old) => 0.7 * old + 0.3 * new,
+        None => new,
+    }
+}
+
+/// Copies `size` bytes of a MAP_READ buffer out, after the queue is idle.
+fn map_read(engine: &Engine, buffer: &wgpu::Buffer, size: u64) -> Result<Vec<u8>, EngineError> {
+    let (sender, receiver) = std::sync::mpsc::channel();
+    buffer.map_async(wgpu::MapMode::Read, ..size, move |result| {
+        let _ = sender.send(result);
+    });
+    engine.gpu.wait_idle()?;
+    receiver
+        .recv_timeout(Duration::from_secs(5))
+        .map_err(|_| EngineError::Gpu("irradiance read-back never completed".into()))?
+        .map_err(|e| EngineError::Gpu(format!("irradiance read-back failed: {e}")))?;
+    let bytes = buffer
+        .get_mapped_range(..size)
+        .map_err(|e| EngineError::Gpu(format!("irradiance read-back mapping failed: {e}")))?
+        .to_vec();
+    buffer.unmap();
+    Ok(bytes)
+}
+
 /// GPU buffers whose size depends on the viewport.
 struct PixelBuffers {
     pixel_aux: wgpu::Buffer,
@@ -251,6 +395,7 @@ struct Layout {
     node_capacity: u32,
     ref_capacity: u32,
     max_pending: u32,
+    lock_depth: u32,
 }
 
 impl Layout {
@@ -260,14 +405,24 @@ impl Layout {
         let auto_pending = (PAPER_PENDING * (width as f64 * height as f64) / PAPER_PIXELS)
             .round()
             .clamp(16.0, PAPER_PENDING) as u32;
-        let min_nodes = (8u32.pow(config.lock_depth.min(6) + 1) - 1) / 7;
+        let max_pending = config.max_pending.unwrap_or(auto_pending).max(1);
+        let lock_depth = config.lock_depth.unwrap_or_else(|| {
+            // Smallest depth with 8^depth ≥ 8 · max_pending.
+            let mut depth = 2;
+            while depth < 4 && 8u64.pow(depth) < 8 * max_pending as u64 {
+                depth += 1;
+            }
+            depth
+        });
+        let min_nodes = (8u32.pow(lock_depth.min(6) + 1) - 1) / 7;
         Self {
             blocks_x,
             blocks_y,
             block_count: blocks_x * blocks_y,
             node_capacity: min_nodes.saturating_add(config.entry_capacity.saturating_mul(4)),
             ref_capacity: config.entry_capacity.saturating_mul(8),
-            max_pending: config.max_pending.unwrap_or(auto_pending).max(1),
+            max_pending,
+            lock_depth,
         }
     }
 
@@ -368,8 +523,12 @@ pub struct Irradiance {
     cache_density: f32,
     cache_g: f32,
     cache_bounces: u32,
+    bookkeeping_cost: Option<f64>,
     pub last_frame: FrameTimes,
     lcg: u64,
+    timer: Option<PhaseTimer>,
+    /// Each frame's read-back (ReadbackLayout).
+    readback: wgpu::Buffer,
 }
 
 impl Irradiance {
@@ -472,7 +631,7 @@ impl Irradiance {
             octree: Octree::new(
                 root_min,
                 root_edge,
-                config.lock_depth,
+                layout.lock_depth,
                 octree::MAX_DEPTH - 1,
             ),
             root_min,
@@ -499,8 +658,11 @@ impl Irradiance {
             cache_density: scene.params.density_scale,
             cache_g: scene.params.g,
             cache_bounces: config.bounces,
+            bookkeeping_cost: None,
             last_frame: FrameTimes::default(),
             lcg: 0x853c_49e6_748f_ea9b ^ scene.seed as u64,
+            timer: PhaseTimer::new(engine),
+            readback: readback_buffer(engine, &layout),
         };
         technique.reset_words(engine);
         technique.upload_octree(engine)?;
@@ -520,6 +682,33 @@ impl Irradiance {
         stats.pending = self.pending;
         stats.hit_rate = self.hit_rate() as f32;
         stats
+    }
+
+    /// Per pixel, row 0 at the top: the mean radiance, and the variance of the mean of its
+    /// luminance (from its samples' squared luminance; 0 below two samples).
+    pub fn read_estimate(&self, engine: &Engine) -> Result<(Vec<[f32; 3]>, Vec<f32>), EngineError> {
+        let sums: Vec<[f32; 4]> =
+            bytemuck::pod_collect_to_vec(&engine.gpu.read_buffer(self.base.bindings().accum)?);
+        let aux: Vec<[f32; 4]> =
+            bytemuck::pod_collect_to_vec(&engine.gpu.read_buffer(&self.pixels.pixel_aux)?);
+        let mut mean = Vec::with_capacity(sums.len());
+        let mut variance = Vec::with_capacity(sums.len());
+        for (s, a) in sums.iter().zip(&aux) {
+            let n = s[3];
+            let m = if n > 0.0 {
+                [s[0] / n, s[1] / n, s[2] / n]
+            } else {
+                [0.0; 3]
+            };
+            let lum = 0.2126 * m[0] + 0.7152 * m[1] + 0.0722 * m[2];
+            variance.push(if n >= 2.0 {
+                ((a[3] - n * lum * lum) / (n - 1.0)).max(0.0) / n
+            } else {
+                0.0
+            });
+            mean.push(m);
+        }
+        Ok((mean, variance))
     }
 
     /// The cache's entries, as created (radii as the update left them at the last rebuild).
@@ -544,6 +733,9 @@ impl Irradiance {
         }
         if self.config.historygrams == Historygrams::Samples {
             flags |= FLAG_SAMPLED_HISTORYGRAMS;
+        }
+        if self.config.view_event == ViewEvent::Marched {
+            flags |= FLAG_MARCHED_VIEW;
         }
         let refs_offset = 4 * self.octree.node_count() as u32;
         let params = IrradianceParams {
@@ -574,7 +766,7 @@ impl Irradiance {
             bounces: self.config.bounces,
             priority_offset: self.layout.list_capacity(),
             voxel: self.voxel,
-            pad0: 0,
+            dark_floor: self.config.dark_floor * brightest_irradiance(scene),
             pad1: 0,
             pad2: 0,
         };
@@ -637,7 +829,7 @@ impl Irradiance {
         self.octree = Octree::new(
             self.root_min,
             self.root_edge,
-            self.config.lock_depth,
+            self.layout.lock_depth,
             octree::MAX_DEPTH - 1,
         );
         self.full = false;
@@ -662,7 +854,7 @@ impl Irradiance {
         self.octree = Octree::new(
             self.root_min,
             self.root_edge,
-            self.config.lock_depth,
+            self.layout.lock_depth,
             octree::MAX_DEPTH - 1,
         );
         self.full = false;
@@ -717,7 +909,7 @@ impl Irradiance {
         self.octree = Octree::new(
             self.root_min,
             self.root_edge,
-            self.config.lock_depth,
+            self.layout.lock_depth,
             octree::MAX_DEPTH - 1,
         );
         for i in 0..self.mirror.len() {
@@ -909,7 +1101,9 @@ impl Irradiance {
         let n = self.layout.block_count as usize;
         let renders = match (self.config.frame_time, self.block_cost) {
             (Some(frame), Some(cost)) => {
-                ((1.0 - tc - tu) * frame.as_secs_f64() / cost.max(1e-9)).round() as usize
+                let left =
+                    (1.0 - tc - tu) * frame.as_secs_f64() - self.bookkeeping_cost.unwrap_or(0.0);
+                (left / cost.max(1e-9)).round() as usize
             }
             _ => n,
         }
@@ -953,9 +1147,12 @@ impl Irradiance {
                 create_rounds = if self.pending > 0 { c } else { 0 };
                 update_rounds = if self.mirror.len() >= 2 { u } else { 0 };
             } else {
-                self.creation_credit =
-                    (self.creation_credit + tc * frame_time).min(tc * frame_time);
-                self.update_credit = (self.update_credit + tu * frame_time).min(tu * frame_time);
+                // Owed time is at most one frame's share; a slow round (a first dispatch, a
+                // busy machine) delays the next by at most two.
+                self.creation_credit = (self.creation_credit + tc * frame_time)
+                    .clamp(-2.0 * tc * frame_time, tc * frame_time);
+                self.update_credit = (self.update_credit + tu * frame_time)
+                    .clamp(-2.0 * tu * frame_time, tu * frame_time);
                 if self.pending > 0 && self.creation_credit > 0.0 {
                     create_rounds = match self.request_round_cost {
                         Some(cost) => (self.creation_credit / (cost * self.pending as f64))
@@ -1017,87 +1214,165 @@ impl Irradiance {
             padded[at..at + size_of::<DispatchInfo>()].copy_from_slice(bytemuck::bytes_of(info));
         }
         queue.write_buffer(&self.cache.dispatch, 0, &padded);
-        let passes_gpu = &engine.irradiance;
 
-        // Rendering.
-        let mut encoder = Self::encoder(engine, "irradiance render");
-        for &(slot, count) in &render_dispatches {
-            passes_gpu.encode(
-                &mut encoder,
-                "irradiance render",
-                &passes_gpu.render,
-                &self.bind_group,
-                slot,
-                count,
+        // One submission: rendering, creation rounds, update rounds, then the requests and
+        // priority passes and the copies the CPU reads back (one map per frame).
+        let passes_gpu = &engine.irradiance;
+        let timer = self.timer.as_ref();
+        let split = timer.is_none();
+        let mut phase_times = [Duration::ZERO; PHASES];
+        let mut used = [false; PHASES];
+        let mut encoder = Self::encoder(engine, "irradiance frame");
+        let mut phase = |encoder: &mut wgpu::CommandEncoder,
+                         index: usize,
+                         passes: &mut dyn Iterator<
+            Item = (&wgpu::ComputePipeline, &str, u32, u32),
+        >|
+         -> Result<(), EngineError> {
+            let all: Vec<_> = passes.filter(|p| p.3 > 0).collect();
+            used[index] |= !all.is_empty();
+            for (i, &(pipeline, label, slot, workgroups)) in all.iter().enumerate() {
+                let writes = timer.and_then(|t| t.writes(index, i == 0, i + 1 == all.len()));
+                passes_gpu.encode_timed(
+                    encoder,
+                    label,
+                    pipeline,
+                    &self.bind_group,
+                    slot,
+                    workgroups,
+                    writes,
+                );
+            }
+            if split && !all.is_empty() {
+                let full = std::mem::replace(encoder, Self::encoder(engine, "irradiance frame"));
+                phase_times[index] = Self::submit_and_time(engine, full)?;
+            }
+            Ok(())
+        };
+        phase(
+            &mut encoder,
+            PHASE_RENDER,
+            &mut render_dispatches
+                .iter()
+                .map(|&(slot, count)| (&passes_gpu.render, "irradiance render", slot, count)),
+        )?;
+        let pending = if cache_on { self.pending } else { 0 };
+        phase(
+            &mut encoder,
+            PHASE_CREATE,
+            &mut (0..create_rounds).map(|r| {
+                (
+                    &passes_gpu.create,
+                    "irradiance create",
+                    create_first + r,
+                    pending,
+                )
+            }),
+        )?;
+        let update_groups = self.layout.block_count.div_ceil(UPDATE_WORKGROUP);
+        phase(
+            &mut encoder,
+            PHASE_UPDATE,
+            &mut (0..if cache_on { update_rounds } else { 0 }).map(|r| {
+                (
+                    &passes_gpu.update,
+                    "irradiance update",
+                    update_first + r,
+                    update_groups,
+                )
+            }),
+        )?;
+        let requests =
+            (cache_on && cache_work).then_some((&passes_gpu.requests, "irradiance requests", 0, 1));
+        let priority_passes: Vec<_> = if self.config.priorities {
+            (0..n)
+                .step_by(MAX_WORKGROUPS)
+                .enumerate()
+                .map(|(i, first)| {
+                    (
+                        &passes_gpu.priority,
+                        "irradiance priority",
+                        priority_first + i as u32,
+                        (n - first).min(MAX_WORKGROUPS) as u32,
+                    )
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
+        phase(
+            &mut encoder,
+            PHASE_TAIL,
+            &mut requests.into_iter().chain(priority_passes),
+        )?;
+
+        // Read-back: counters, priorities, the entries that may have been finished, times.
+        let known = self.mirror.len() as u64;
+        let entry_size = size_of::<CacheEntry>() as u64;
+        let new_entries = (self.layout.max_pending as u64)
+            .min((self.config.entry_capacity as u64).saturating_sub(known));
+        let layout = ReadbackLayout::new(n as u64, self.layout.max_pending as u64);
+        encoder.copy_buffer_to_buffer(&self.pixels.words, 0, &self.readback, 0, layout.counters);
+        if self.config.priorities {
+            encoder.copy_buffer_to_buffer(
+                &self.pixels.blocks,
+                self.layout.list_capacity() as u64 * 4,
+                &self.readback,
+                layout.priorities,
+                n as u64 * 4,
             );
         }
-        times.render = Self::submit_and_time(engine, encoder)?;
+        if cache_on && new_entries > 0 {
+            encoder.copy_buffer_to_buffer(
+                &self.cache.entries,
+                known * entry_size,
+                &self.readback,
+                layout.entries,
+                new_entries * entry_size,
+            );
+        }
+        if let Some(timer) = timer {
+            timer.resolve(&mut encoder, &self.readback, layout.timestamps);
+        }
+        let tail_started = Instant::now();
+        engine.gpu.queue.submit([encoder.finish()]);
+        let bytes = map_read(engine, &self.readback, layout.total)?;
+        if split {
+            phase_times[PHASE_TAIL] += tail_started.elapsed();
+        } else if let Some(timer) = timer {
+            let at = layout.timestamps as usize;
+            let ticks: Vec<u64> =
+                bytemuck::pod_collect_to_vec(&bytes[at..at + layout.timestamp_bytes as usize]);
+            phase_times = timer.durations(engine, &ticks, used);
+        }
+        times.render = phase_times[PHASE_RENDER];
+        times.create = phase_times[PHASE_CREATE];
+        times.update = phase_times[PHASE_UPDATE];
+        let bookkeeping = Instant::now();
         if blocks_rendered > 0 {
             let cost = times.render.as_secs_f64() / blocks_rendered as f64;
-            self.block_cost = Some(match self.block_cost {
-                Some(old) => 0.7 * old + 0.3 * cost,
-                None => cost,
-            });
+            self.block_cost = Some(smooth(self.block_cost, cost));
         }
         self.block_renders += blocks_rendered as u64;
-
+        if create_rounds > 0 && pending > 0 {
+            self.creation_credit -= times.create.as_secs_f64();
+            let cost = times.create.as_secs_f64() / (create_rounds * pending) as f64;
+            self.request_round_cost = Some(smooth(self.request_round_cost, cost));
+            self.stats.creation_rounds += create_rounds as u64;
+        }
+        if update_rounds > 0 && cache_on {
+            self.update_credit -= times.update.as_secs_f64();
+            let cost = times.update.as_secs_f64() / update_rounds as f64;
+            self.update_round_cost = Some(smooth(self.update_round_cost, cost));
+            self.stats.update_rounds += update_rounds as u64;
+        }
+        if self.config.priorities {
+            let at = layout.priorities as usize;
+            self.priorities = bytemuck::pod_collect_to_vec(&bytes[at..at + n * 4]);
+        }
         if cache_on {
-            if create_rounds > 0 {
-                let mut encoder = Self::encoder(engine, "irradiance create");
-                for r in 0..create_rounds {
-                    passes_gpu.encode(
-                        &mut encoder,
-                        "irradiance create",
-                        &passes_gpu.create,
-                        &self.bind_group,
-                        create_first + r,
-                        self.pending,
-                    );
-                }
-                times.create = Self::submit_and_time(engine, encoder)?;
-                self.creation_credit -= times.create.as_secs_f64();
-                let cost = times.create.as_secs_f64() / (create_rounds * self.pending) as f64;
-                self.request_round_cost = Some(match self.request_round_cost {
-                    Some(old) => 0.7 * old + 0.3 * cost,
-                    None => cost,
-                });
-                self.stats.creation_rounds += create_rounds as u64;
-            }
-            if update_rounds > 0 {
-                let mut encoder = Self::encoder(engine, "irradiance update");
-                for r in 0..update_rounds {
-                    passes_gpu.encode(
-                        &mut encoder,
-                        "irradiance update",
-                        &passes_gpu.update,
-                        &self.bind_group,
-                        update_first + r,
-                        self.layout.block_count.div_ceil(UPDATE_WORKGROUP),
-                    );
-                }
-                times.update = Self::submit_and_time(engine, encoder)?;
-                self.update_credit -= times.update.as_secs_f64();
-                let cost = times.update.as_secs_f64() / update_rounds as f64;
-                self.update_round_cost = Some(match self.update_round_cost {
-                    Some(old) => 0.7 * old + 0.3 * cost,
-                    None => cost,
-                });
-                self.stats.update_rounds += update_rounds as u64;
-            }
-            let bookkeeping = Instant::now();
-            if cache_work {
-                let mut encoder = Self::encoder(engine, "irradiance requests");
-                passes_gpu.encode(
-                    &mut encoder,
-                    "irradiance requests",
-                    &passes_gpu.requests,
-                    &self.bind_group,
-                    0,
-                    1,
-                );
-                engine.gpu.queue.submit([encoder.finish()]);
-            }
-            self.read_counters(engine)?;
+            let at = layout.entries as usize;
+            self.read_counters(&bytes[..layout.counters as usize], &bytes[at..])?;
             if self.octree_dirty {
                 self.upload_octree(engine)?;
             }
@@ -1106,46 +1381,21 @@ impl Irradiance {
             {
                 self.rebuild_octree(engine)?;
             }
-            times.bookkeeping = bookkeeping.elapsed();
         }
-
-        if self.config.priorities {
-            let bookkeeping = Instant::now();
-            let mut encoder = Self::encoder(engine, "irradiance priority");
-            for (i, first) in (0..n).step_by(MAX_WORKGROUPS).enumerate() {
-                passes_gpu.encode(
-                    &mut encoder,
-                    "irradiance priority",
-                    &passes_gpu.priority,
-                    &self.bind_group,
-                    priority_first + i as u32,
-                    (n - first).min(MAX_WORKGROUPS) as u32,
-                );
-            }
-            engine.gpu.queue.submit([encoder.finish()]);
-            let bytes = engine.gpu.read_buffer_range(
-                &self.pixels.blocks,
-                self.layout.list_capacity() as u64 * 4,
-                n as u64 * 4,
-            )?;
-            self.priorities = bytemuck::try_cast_slice::<u8, f32>(&bytes)
-                .map_err(|e| EngineError::Gpu(format!("priority readback: {e}")))?
-                .to_vec();
-            times.bookkeeping += bookkeeping.elapsed();
-        }
+        times.bookkeeping = phase_times[PHASE_TAIL] + bookkeeping.elapsed();
+        self.bookkeeping_cost = Some(smooth(
+            self.bookkeeping_cost,
+            times.bookkeeping.as_secs_f64(),
+        ));
         self.frame = self.frame.wrapping_add(1);
         self.last_frame = times;
         Ok(times)
     }
 
-    /// Reads the counters; stores the entries finished this frame in the octree.
-    fn read_counters(&mut self, engine: &Engine) -> Result<(), EngineError> {
-        let bytes =
-            engine
-                .gpu
-                .read_buffer_range(&self.pixels.words, 0, (COUNTER_WORDS * 4) as u64)?;
-        let words: &[u32] = bytemuck::try_cast_slice(&bytes)
-            .map_err(|e| EngineError::Gpu(format!("counter readback: {e}")))?;
+    /// Reads the counters; stores the entries finished this frame (read back speculatively,
+    /// from the first unknown slot on) in the octree.
+    fn read_counters(&mut self, counters: &[u8], finished: &[u8]) -> Result<(), EngineError> {
+        let words: Vec<u32> = bytemuck::pod_collect_to_vec(counters);
         let delta = |k: usize| words[k].wrapping_sub(self.counters[k]) as u64;
         let (hits, misses) = (delta(COUNTER_HITS), delta(COUNTER_MISSES));
         self.stats.hits += hits;
@@ -1169,20 +1419,21 @@ impl Irradiance {
         self.counters.copy_from_slice(&words[..COUNTER_WORDS]);
         let known = self.mirror.len();
         if entries > known {
-            let size = size_of::<CacheEntry>() as u64;
-            let bytes = engine.gpu.read_buffer_range(
-                &self.cache.entries,
-                known as u64 * size,
-                (entries - known) as u64 * size,
-            )?;
-            let new: &[CacheEntry] = bytemuck::try_cast_slice(&bytes)
-                .map_err(|e| EngineError::Gpu(format!("entry readback: {e}")))?;
+            let size = size_of::<CacheEntry>();
+            let count = entries - known;
+            if finished.len() < count * size {
+                return Err(EngineError::Gpu(format!(
+                    "irradiance: {count} entries finished, {} read back",
+                    finished.len() / size
+                )));
+            }
+            let new: Vec<CacheEntry> = bytemuck::pod_collect_to_vec(&finished[..count * size]);
             let delta = self.config.delta_voxels * self.voxel;
             let (min_r, max_r) = (
                 self.config.min_radius_voxels * self.voxel,
                 self.config.max_radius_voxels * self.voxel,
             );
-            for entry in new {
+            for entry in &new {
                 let radii = std::array::from_fn(|h| {
                     validity_radius(entry.sigma[h][3], delta, self.config.epsilon, min_r, max_r)
                 });
@@ -1224,6 +1475,25 @@ impl Irradiance {
     pub fn set_invalidation(&mut self, invalidation: Invalidation) {
         self.config.invalidation = invalidation;
     }
+}
+
+/// Luminance of the irradiance a point of the volume receives at most, unshadowed: every
+/// directional light's, every point light's at the volume's centre, and 4π times the
+/// environment's radiance.
+pub fn brightest_irradiance(scene: &Scene) -> f32 {
+    let lum = |c: [f32; 3]| 0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2];
+    scene
+        .lights
+        .iter()
+        .map(|light| match *light {
+            Light::Directional { irradiance, .. } => lum(irradiance),
+            Light::Point {
+                position,
+                intensity,
+            } => lum(intensity) / position.iter().map(|x| x * x).sum::<f32>().max(1e-4),
+            Light::Environment { radiance } => 4.0 * std::f32::consts::PI * lum(radiance),
+        })
+        .sum()
 }
 
 /// The radii an entry starts with: validity_radius in irradiance_common.wgsl.
@@ -1271,9 +1541,10 @@ fn validate(config: &IrradianceConfig) -> Result<(), EngineError> {
         && positive(config.fraction_exponent)
         && config.entry_capacity >= 1
         && config.min_samples >= 2
+        && (0.0..1.0).contains(&config.dark_floor)
         && config.min_samples <= config.max_samples
         && config.max_pending.is_none_or(|p| (1..=65535).contains(&p))
-        && config.lock_depth <= 6;
+        && config.lock_depth.is_none_or(|d| d <= 6);
     if ok {
         Ok(())
     } else {
@@ -1281,6 +1552,15 @@ fn validate(config: &IrradianceConfig) -> Result<(), EngineError> {
             "irradiance: bad configuration {config:?}"
         )))
     }
+}
+
+fn readback_buffer(engine: &Engine, layout: &Layout) -> wgpu::Buffer {
+    engine.gpu.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("irradiance read-back"),
+        size: ReadbackLayout::new(layout.block_count as u64, layout.max_pending as u64).total,
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    })
 }
 
 fn pixel_buffers(engine: &Engine, width: u32, height: u32, layout: &Layout) -> PixelBuffers {
@@ -1360,9 +1640,11 @@ impl Technique for Irradiance {
                     node_capacity: self.layout.node_capacity,
                     ref_capacity: self.layout.ref_capacity,
                     max_pending: self.layout.max_pending,
+                    lock_depth: self.layout.lock_depth,
                     ..layout
                 };
                 self.pixels = pixel_buffers(engine, width, height, &self.layout);
+                self.readback = readback_buffer(engine, &self.layout);
                 self.bind_group = bind_group(engine, &self.base, &self.cache, &self.pixels);
                 self.reset_words(engine);
                 self.cursor = 0;

@@ -1,0 +1,591 @@
+//! `voxlight bench convergence` (the irradiance-caching paper's Table 2) and `voxlight bench
+//! tf-edit --technique irradiance` (historygram invalidation against a cleared cache).
+//!
+//! Errors are measured against a long plain Monte-Carlo run (the `pathtrace` estimator) of the
+//! same scene with its own random numbers: the relative RMS luminance error over the image,
+//! with the reference's own noise (the variance of its pixel means, from its samples) taken
+//! out, so that the error is that against the converged picture, not against a noisy one.
+
+use std::path::Path;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use serde_json::json;
+use voxlight_engine::techniques::irradiance::{
+    Historygrams, Invalidation, Irradiance, IrradianceConfig, Locking,
+};
+use voxlight_engine::{Change, Engine, GpuVolume, Scene, Technique};
+use voxlight_protocol::{Camera, Light, TfPoint, TransferFunction, Viewport};
+
+/// Options of `bench convergence`.
+pub struct ConvergenceBench<'a> {
+    pub data_dir: Option<&'a Path>,
+    pub size: u32,
+    pub max_dim: u32,
+    /// Frames each of plain MCVR and `irradiance` runs.
+    pub frames: u32,
+    /// Samples per pixel of the reference.
+    pub reference_spp: u32,
+    pub lights: &'a [u32],
+    pub datasets: &'a [String],
+    /// Most scattering events on a camera path (1: single scattering, as in the paper).
+    pub bounces: u32,
+    /// Where to write each case's pictures (reference, plain, irradiance at the last frame).
+    pub dump: Option<&'a Path>,
+}
+
+/// Writes linear radiance as an sRGB PNG (exposure 1, clamped).
+fn save_png(path: &Path, picture: &[[f32; 3]], size: u32) -> anyhow::Result<()> {
+    let srgb = |x: f32| {
+        let x = x.clamp(0.0, 1.0);
+        let s = if x <= 0.0031308 {
+            12.92 * x
+        } else {
+            1.055 * x.powf(1.0 / 2.4) - 0.055
+        };
+        (s * 255.0 + 0.5) as u8
+    };
+    let rgba: Vec<u8> = picture
+        .iter()
+        .flat_map(|p| [srgb(p[0]), srgb(p[1]), srgb(p[2]), 255])
+        .collect();
+    std::fs::write(path, crate::encode::png(&rgba, size, size)?)
+        .with_context(|| format!("writing {}", path.display()))
+}
+
+/// A converged picture and the variance of each pixel's mean luminance.
+struct Reference {
+    mean: Vec<[f32; 3]>,
+    mean_luminance: f64,
+    noise: f64,
+}
+
+fn luminance(c: [f32; 3]) -> f64 {
+    0.2126 * c[0] as f64 + 0.7152 * c[1] as f64 + 0.0722 * c[2] as f64
+}
+
+impl Reference {
+    fn new(mean: Vec<[f32; 3]>, variance: Vec<f32>) -> Self {
+        let n = mean.len().max(1) as f64;
+        let mean_luminance = mean.iter().map(|&c| luminance(c)).sum::<f64>() / n;
+        let noise = variance.iter().map(|&v| v as f64).sum::<f64>() / n;
+        Self {
+            mean,
+            mean_luminance,
+            noise,
+        }
+    }
+
+    /// Relative RMS luminance error of `picture` against the converged image: the mean
+    /// squared difference less the reference's own variance, over the mean luminance.
+    fn error(&self, picture: &[[f32; 3]]) -> f64 {
+        let n = picture.len().max(1) as f64;
+        let squared = picture
+            .iter()
+            .zip(&self.mean)
+            .map(|(&a, &b)| (luminance(a) - luminance(b)).powi(2))
+            .sum::<f64>()
+            / n;
+        (squared - self.noise).max(0.0).sqrt() / self.mean_luminance.max(1e-12)
+    }
+
+    /// The reference's own relative noise (what `error` takes out).
+    fn relative_noise(&self) -> f64 {
+        self.noise.sqrt() / self.mean_luminance.max(1e-12)
+    }
+}
+
+/// The paper's three light setups (§8), with the lights this renderer has, placed for the
+/// default camera (at −y looking along +y, +z up): one small distant light from above the
+/// camera; three intense lights close to the volume on the camera's side; four dim lights
+/// around it. `up` is +1, or −1 for a volume seen upside down (its lights are mirrored).
+pub fn light_setup(count: u32, up: f32) -> anyhow::Result<Vec<Light>> {
+    let mirror = |v: [f32; 3]| [v[0], v[1], v[2] * up];
+    Ok(match count {
+        1 => vec![Light::Directional {
+            direction: mirror([0.35, 0.6, -0.7]),
+            irradiance: [3.0, 2.9, 2.7],
+        }],
+        3 => [
+            ([-0.7, -0.6, 0.4], [1.6, 1.4, 1.2]),
+            ([0.75, -0.5, 0.3], [1.2, 1.4, 1.6]),
+            ([0.0, -0.3, 0.85], [1.5, 1.5, 1.5]),
+        ]
+        .into_iter()
+        .map(|(position, intensity)| Light::Point {
+            position: mirror(position),
+            intensity,
+        })
+        .collect(),
+        4 => [
+            [1.0, 0.3, -0.3],
+            [-1.0, 0.3, -0.3],
+            [0.0, 1.0, -0.3],
+            [0.0, -1.0, -0.3],
+        ]
+        .into_iter()
+        .map(|direction| Light::Directional {
+            direction: mirror(direction),
+            irradiance: [0.7, 0.7, 0.7],
+        })
+        .collect(),
+        other => anyhow::bail!("light setups are 1, 3 and 4 lights, not {other}"),
+    })
+}
+
+/// +1, or −1 for datasets the default camera sees upside down (the bonsai grows along −z).
+fn dataset_up(name: &str) -> f32 {
+    if name == "bonsai" { -1.0 } else { 1.0 }
+}
+
+/// A dataset of ../shared/data by short name, downsampled.
+fn dataset(data_dir: &Path, name: &str, max_dim: u32) -> anyhow::Result<voxlight_volumes::Volume> {
+    let rel = match name {
+        "bonsai" => "vti/bonsai.vti",
+        "chest" => "ct-chest-lidc",
+        "engine" => "vti/engine.vti",
+        other => anyhow::bail!("unknown dataset `{other}`; available: bonsai, chest, engine"),
+    };
+    let path = data_dir.join(rel);
+    let mut volume = voxlight_volumes::load(&path)
+        .with_context(|| format!("loading {}", path.display()))?
+        .downsampled(max_dim);
+    volume.name = rel.to_owned();
+    Ok(volume)
+}
+
+fn plain(bounces: u32) -> IrradianceConfig {
+    IrradianceConfig {
+        cache: false,
+        priorities: false,
+        bounces,
+        ..IrradianceConfig::default()
+    }
+}
+
+/// Runs `frames` frames, returning each frame's error and time.
+fn run_frames(
+    engine: &Engine,
+    technique: &mut Irradiance,
+    scene: &Scene,
+    frames: u32,
+    reference: &Reference,
+) -> anyhow::Result<(Vec<f64>, Vec<Duration>)> {
+    let mut errors = Vec::with_capacity(frames as usize);
+    let mut times = Vec::with_capacity(frames as usize);
+    for _ in 0..frames {
+        let started = Instant::now();
+        technique.frame(engine, scene, true)?;
+        times.push(started.elapsed());
+        errors.push(reference.error(&technique.read_estimate(engine)?.0));
+    }
+    Ok((errors, times))
+}
+
+fn reference(
+    engine: &Engine,
+    volume: &Arc<GpuVolume>,
+    scene: &Scene,
+    spp: u32,
+    bounces: u32,
+) -> anyhow::Result<Reference> {
+    let scene = Scene {
+        seed: scene.seed ^ 0x5eed_0001,
+        ..scene.clone()
+    };
+    let mut technique = Irradiance::new(engine, Arc::clone(volume), &scene, plain(bounces))?;
+    for _ in 0..spp {
+        technique.frame(engine, &scene, true)?;
+    }
+    let (mean, variance) = technique.read_estimate(engine)?;
+    Ok(Reference::new(mean, variance))
+}
+
+/// Mean samples per estimation point and mean zone radius (voxels) of the cache's entries.
+fn entry_shape(
+    engine: &Engine,
+    technique: &mut Irradiance,
+    max_dim: u32,
+) -> anyhow::Result<String> {
+    let snapshot = technique.snapshot(engine)?;
+    let n = snapshot.entries.len().max(1) as f64;
+    let samples = snapshot
+        .entries
+        .iter()
+        .map(|e| e.samples as f64)
+        .sum::<f64>()
+        / n;
+    let radius = snapshot.radii.iter().map(|&r| r as f64).sum::<f64>() / (6.0 * n);
+    Ok(format!(
+        "{samples:.0} samples per point, mean radius {:.1} voxels",
+        radius * max_dim as f64
+    ))
+}
+
+fn median(mut values: Vec<Duration>) -> Duration {
+    values.sort();
+    values.get(values.len() / 2).copied().unwrap_or_default()
+}
+
+fn mean_ratio(numerator: &[f64], denominator: &[f64]) -> f64 {
+    let ratios: Vec<f64> = numerator
+        .iter()
+        .zip(denominator)
+        .filter(|(_, d)| **d > 0.0)
+        .map(|(n, d)| n / d)
+        .collect();
+    ratios.iter().sum::<f64>() / ratios.len().max(1) as f64
+}
+
+/// The TF each dataset is measured with: the bonsai's leaves, trunk and pot without its
+/// background noise (values below 0.22, most of the volume), the engine's two materials, the
+/// chest CT's soft tissue and bone (the viewer's default).
+fn bench_tf(name: &str, volume: &voxlight_volumes::Volume) -> TransferFunction {
+    let point = |value: f32, color: [f32; 3], opacity: f32| TfPoint {
+        value,
+        color,
+        opacity,
+    };
+    match name {
+        "bonsai" => TransferFunction {
+            points: vec![
+                point(0.0, [0.3, 0.6, 0.2], 0.0),
+                point(0.22, [0.3, 0.6, 0.2], 0.0),
+                point(0.32, [0.35, 0.65, 0.25], 0.5),
+                point(0.55, [0.55, 0.4, 0.25], 0.7),
+                point(0.72, [0.8, 0.45, 0.3], 1.0),
+                point(1.0, [0.8, 0.45, 0.3], 1.0),
+            ],
+        },
+        "engine" => TransferFunction {
+            points: vec![
+                point(0.0, [0.0; 3], 0.0),
+                point(0.45, [0.6, 0.65, 0.75], 0.0),
+                point(0.50, [0.6, 0.65, 0.75], 0.25),
+                point(0.62, [0.6, 0.65, 0.75], 0.25),
+                point(0.68, [0.6, 0.65, 0.75], 0.0),
+                point(0.72, [0.9, 0.55, 0.25], 0.0),
+                point(0.78, [0.9, 0.55, 0.25], 1.0),
+                point(1.0, [0.9, 0.55, 0.25], 1.0),
+            ],
+        },
+        _ => crate::datasets::default_tf(volume),
+    }
+}
+
+fn base_scene(
+    name: &str,
+    volume: &voxlight_volumes::Volume,
+    size: u32,
+    lights: Vec<Light>,
+) -> Scene {
+    let up = dataset_up(name);
+    Scene {
+        camera: Camera {
+            up: [0.0, 0.0, up],
+            ..Camera::default()
+        },
+        tf: bench_tf(name, volume),
+        lights,
+        viewport: Viewport {
+            width: size,
+            height: size,
+        },
+        target_iterations: u32::MAX,
+        seed: 11,
+        ..Scene::default()
+    }
+}
+
+/// `bench convergence`: plain MCVR against `irradiance` at equal time per frame (the plain
+/// run's median frame time), for each dataset, light setup, with and without priorities,
+/// object- and screen-space locking; the ratio of their errors averaged over the frames.
+pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Value> {
+    let data_dir = options
+        .data_dir
+        .context("bench convergence needs ../shared/data (or --data)")?;
+    let engine = Engine::new()?;
+    let mut cases = Vec::new();
+    for name in options.datasets {
+        let volume = dataset(data_dir, name, options.max_dim)?;
+        let gpu_volume = engine.upload_volume(&volume)?;
+        for &lights in options.lights {
+            let scene = base_scene(
+                name,
+                &volume,
+                options.size,
+                light_setup(lights, dataset_up(name))?,
+            );
+            let started = Instant::now();
+            let reference = reference(
+                &engine,
+                &gpu_volume,
+                &scene,
+                options.reference_spp,
+                options.bounces,
+            )?;
+            eprintln!(
+                "{name}, {lights} light(s): reference {} spp in {:.1} s (its own relative noise {:.4})",
+                options.reference_spp,
+                started.elapsed().as_secs_f64(),
+                reference.relative_noise()
+            );
+            let mut baseline = Irradiance::new(
+                &engine,
+                Arc::clone(&gpu_volume),
+                &scene,
+                plain(options.bounces),
+            )?;
+            let (plain_errors, plain_times) =
+                run_frames(&engine, &mut baseline, &scene, options.frames, &reference)?;
+            let frame_time = median(plain_times.clone());
+            let dump = |what: &str, picture: &[[f32; 3]]| -> anyhow::Result<()> {
+                match options.dump {
+                    Some(dir) => {
+                        std::fs::create_dir_all(dir)?;
+                        save_png(
+                            &dir.join(format!("{name}-{lights}-{what}.png")),
+                            picture,
+                            options.size,
+                        )
+                    }
+                    None => Ok(()),
+                }
+            };
+            dump("reference", &reference.mean)?;
+            dump("plain", &baseline.read_estimate(&engine)?.0)?;
+            for priorities in [false, true] {
+                for locking in [Locking::Object, Locking::Screen] {
+                    let config = IrradianceConfig {
+                        locking,
+                        priorities,
+                        bounces: options.bounces,
+                        frame_time: Some(frame_time),
+                        ..IrradianceConfig::default()
+                    };
+                    let mut technique =
+                        Irradiance::new(&engine, Arc::clone(&gpu_volume), &scene, config)?;
+                    let (errors, times) =
+                        run_frames(&engine, &mut technique, &scene, options.frames, &reference)?;
+                    let ratio = mean_ratio(&plain_errors, &errors);
+                    let frame_ms = median(times).as_secs_f64() * 1e3;
+                    let shape = entry_shape(&engine, &mut technique, options.max_dim)?;
+                    dump(
+                        &format!(
+                            "irradiance-{}-{}",
+                            if priorities {
+                                "priorities"
+                            } else {
+                                "plain-order"
+                            },
+                            match locking {
+                                Locking::Object => "object",
+                                Locking::Screen => "screen",
+                            }
+                        ),
+                        &technique.read_estimate(&engine)?.0,
+                    )?;
+                    let stats = technique.cache_stats();
+                    let locking_name = match locking {
+                        Locking::Object => "object",
+                        Locking::Screen => "screen",
+                    };
+                    let last = options.frames as usize - 1;
+                    eprintln!(
+                        "{name}, {lights} light(s), priorities {priorities}, {locking_name} locking: \
+                         error ratio {ratio:.2} (last frame: plain {:.4}, irradiance {:.4}); \
+                         {} entries ({shape}), {} references, hit rate {:.2}; frame {:.1} ms vs plain {:.1} ms",
+                        plain_errors[last],
+                        errors[last],
+                        stats.entries,
+                        stats.references,
+                        stats.hit_rate,
+                        frame_ms,
+                        frame_time.as_secs_f64() * 1e3,
+                    );
+                    cases.push(json!({
+                        "dataset": name,
+                        "lights": lights,
+                        "priorities": priorities,
+                        "locking": locking_name,
+                        "error_ratio": ratio,
+                        "cache_entries": stats.entries,
+                        "references": stats.references,
+                        "hit_rate": stats.hit_rate,
+                        "final_error_plain": plain_errors[last],
+                        "final_error_irradiance": errors[last],
+                        "frame_ms_plain": frame_time.as_secs_f64() * 1e3,
+                        "frame_ms_irradiance": frame_ms,
+                        "reference_noise": reference.relative_noise(),
+                    }));
+                }
+            }
+        }
+    }
+    let ratios: Vec<f64> = cases
+        .iter()
+        .filter_map(|c| c["error_ratio"].as_f64())
+        .collect();
+    let mean = ratios.iter().sum::<f64>() / ratios.len().max(1) as f64;
+    Ok(json!({
+        "bench": "convergence",
+        "adapter": engine.gpu.adapter_name(),
+        "software_renderer": engine.gpu.is_software(),
+        "width": options.size,
+        "height": options.size,
+        "max_dim": options.max_dim,
+        "frames": options.frames,
+        "reference_spp": options.reference_spp,
+        "bounces": options.bounces,
+        "cases": cases,
+        "mean_error_ratio": mean,
+    }))
+}
+
+/// Options of `bench tf-edit --technique irradiance`.
+pub struct IrradianceTfEditBench<'a> {
+    pub scenarios: crate::bench::TfEditBench<'a>,
+    /// Frames that build the cache before the edit.
+    pub build_frames: u32,
+    /// Frames measured after it.
+    pub frames: u32,
+    pub reference_spp: u32,
+    pub historygrams: Historygrams,
+}
+
+/// `bench tf-edit --technique irradiance`: a cache built with one TF, then each edit applied
+/// three ways from the same state (historygram invalidation, a cleared cache, plain MCVR), each
+/// followed by the same frames at equal time per frame; entries kept and errors per frame
+/// against a long plain run with the new TF.
+pub fn tf_edit(options: &IrradianceTfEditBench) -> anyhow::Result<serde_json::Value> {
+    let engine = Engine::new()?;
+    let mut rows = Vec::new();
+    for scenario in crate::bench::tf_edit_scenarios(&options.scenarios)? {
+        let gpu_volume = engine.upload_volume(&scenario.volume)?;
+        let base = Scene {
+            camera: scenario.camera,
+            tf: scenario.tf.clone(),
+            lights: crate::datasets::default_lights_for(&scenario.volume),
+            viewport: Viewport {
+                width: options.scenarios.size,
+                height: options.scenarios.size,
+            },
+            target_iterations: u32::MAX,
+            seed: 11,
+            ..Scene::default()
+        };
+        let config = IrradianceConfig {
+            historygrams: options.historygrams,
+            bounces: options.scenarios.bounces,
+            ..IrradianceConfig::default()
+        };
+        let mut builder = Irradiance::new(&engine, Arc::clone(&gpu_volume), &base, config)?;
+        let started = Instant::now();
+        for _ in 0..options.build_frames {
+            builder.frame(&engine, &base, true)?;
+        }
+        let build_s = started.elapsed().as_secs_f64();
+        let snapshot = builder.snapshot(&engine)?;
+        let built = builder.cache_stats();
+        eprintln!(
+            "{}: {} entries after {} frames ({build_s:.1} s)",
+            scenario.name, built.entries, options.build_frames
+        );
+        for edit in &scenario.edits {
+            let scene = Scene {
+                tf: edit.tf.clone(),
+                ..base.clone()
+            };
+            let reference = reference(
+                &engine,
+                &gpu_volume,
+                &scene,
+                options.reference_spp,
+                config.bounces,
+            )?;
+            let mut baseline = Irradiance::new(
+                &engine,
+                Arc::clone(&gpu_volume),
+                &scene,
+                plain(config.bounces),
+            )?;
+            let (plain_errors, plain_times) =
+                run_frames(&engine, &mut baseline, &scene, options.frames, &reference)?;
+            let frame_time = median(plain_times);
+            let change = Change::tf(&base.tf, &scene.tf);
+            let mut runs = Vec::new();
+            for invalidation in [Invalidation::Historygram, Invalidation::Clear] {
+                let config = IrradianceConfig {
+                    invalidation,
+                    frame_time: Some(frame_time),
+                    ..config
+                };
+                let mut technique =
+                    Irradiance::new(&engine, Arc::clone(&gpu_volume), &base, config)?;
+                technique.restore(&engine, &base, &snapshot)?;
+                let started = Instant::now();
+                technique.apply(&engine, &scene, &change)?;
+                let edit_ms = started.elapsed().as_secs_f64() * 1e3;
+                let kept = technique.cache_stats().entries;
+                let (errors, _) =
+                    run_frames(&engine, &mut technique, &scene, options.frames, &reference)?;
+                runs.push((kept, edit_ms, errors));
+            }
+            let (kept, edit_ms, hist_errors) = &runs[0];
+            let (_, _, clear_errors) = &runs[1];
+            let at = |errors: &[f64], frame: usize| errors[frame.min(errors.len() - 1)];
+            let kept_pct = 100.0 * *kept as f64 / built.entries.max(1) as f64;
+            let ratio = mean_ratio(clear_errors, hist_errors);
+            eprintln!(
+                "{} / {}: kept {kept} of {} entries ({kept_pct:.1}%), edit {edit_ms:.1} ms; \
+                 error after 1 / 10 / {} frames: historygram {:.4} / {:.4} / {:.4}, \
+                 cleared {:.4} / {:.4} / {:.4}, plain {:.4} / {:.4} / {:.4}; cleared/historygram {ratio:.2}",
+                scenario.name,
+                edit.name,
+                built.entries,
+                options.frames,
+                at(hist_errors, 0),
+                at(hist_errors, 9),
+                at(hist_errors, usize::MAX),
+                at(clear_errors, 0),
+                at(clear_errors, 9),
+                at(clear_errors, usize::MAX),
+                at(&plain_errors, 0),
+                at(&plain_errors, 9),
+                at(&plain_errors, usize::MAX),
+            );
+            rows.push(json!({
+                "name": scenario.name,
+                "dataset": scenario.dataset,
+                "edit": edit.name,
+                "entries": built.entries,
+                "kept": kept,
+                "kept_pct": kept_pct,
+                "edit_ms": edit_ms,
+                "frame_ms": frame_time.as_secs_f64() * 1e3,
+                "error_historygram": hist_errors,
+                "error_cleared": clear_errors,
+                "error_plain": plain_errors,
+                "mean_error_ratio_cleared_over_historygram": ratio,
+                "mean_error_ratio_plain_over_historygram": mean_ratio(&plain_errors, hist_errors),
+            }));
+        }
+    }
+    Ok(json!({
+        "bench": "tf-edit",
+        "technique": "irradiance",
+        "adapter": engine.gpu.adapter_name(),
+        "software_renderer": engine.gpu.is_software(),
+        "width": options.scenarios.size,
+        "height": options.scenarios.size,
+        "build_frames": options.build_frames,
+        "frames": options.frames,
+        "reference_spp": options.reference_spp,
+        "historygrams": match options.historygrams {
+            Historygrams::Samples => "samples",
+            Historygrams::Cells => "cells",
+        },
+        "scenarios": rows,
+    }))
+}
