@@ -51,7 +51,9 @@ struct IrradianceParams {
     // Irradiance (luminance) below which Eq. 5's error bound stops shrinking: an absolute
     // floor for dark regions, a fraction of the scene's brightest unshadowed irradiance.
     dark_floor: f32,
-    pad1: u32,
+    // Δ of an entry is at most this many mean free paths at its centre (0: always delta): in
+    // dense media the irradiance changes within a free path, far below two voxels.
+    delta_free_paths: f32,
     pad2: u32,
 }
 
@@ -72,7 +74,8 @@ struct CacheEntry {
     opacity_hi: u32,
     colour_lo: u32,
     colour_hi: u32,
-    pad0: u32,
+    // The entry's Δ (world units).
+    delta: f32,
 }
 
 // A cache entry being created: per estimation point (the centre, then ± Δ along t, b, n), the
@@ -90,7 +93,7 @@ struct Request {
     opacity_hi: u32,
     colour_lo: u32,
     colour_hi: u32,
-    pad0: u32,
+    delta: f32,
     pad1: u32,
     // The finished entry (state REQUEST_DONE).
     entry: CacheEntry,
@@ -163,6 +166,9 @@ const UPDATE_SALT: u32 = 0x68e31da4u;
 @group(0) @binding(14) var<storage, read_write> requests: array<Request>;
 // Data bins each macrocell's values can fall in (lo, hi words).
 @group(0) @binding(15) var<storage, read> cell_bins: array<vec2<u32>>;
+// Per entry: its centre and a radius its zone lies within (a lookup rejects far entries
+// without reading them; the update only shrinks zones, so the radius stays an upper bound).
+@group(0) @binding(16) var<storage, read_write> bounds: array<vec4<f32>>;
 
 // The hooks of path.wgsl: a cache entry's estimate records what it depended on.
 var<private> recording: bool = false;
@@ -258,6 +264,15 @@ fn luminance(c: vec3<f32>) -> f32 {
     return dot(c, vec3<f32>(0.2126, 0.7152, 0.0722));
 }
 
+// Δ for an entry centred at p: params.delta, or less where a mean free path is shorter.
+fn entry_delta(p: vec3<f32>) -> f32 {
+    let sigma_t = medium_at(p).a;
+    if (params.delta_free_paths <= 0.0 || sigma_t <= 0.0) {
+        return params.delta;
+    }
+    return clamp(params.delta_free_paths / sigma_t, 0.25 * params.voxel, params.delta);
+}
+
 // Direction of the extinction gradient at p by central differences one voxel apart: the axis
 // an entry's local frame is oriented along (the paper's §4.2). +z where the medium is flat.
 fn extinction_normal(p: vec3<f32>) -> vec3<f32> {
@@ -277,14 +292,37 @@ fn extinction_normal(p: vec3<f32>) -> vec3<f32> {
 // The validity radius of Eq. 9–10 for a virtual extinction coefficient along one axis: the
 // distance at which the extrapolation from E0 differs by ε from E_Δ, i.e. Δ + c/|σ| with
 // c = ln(1 + ε) where the irradiance grows and −ln(1 − ε) where it falls; clamped.
-fn validity_radius(sigma: f32) -> f32 {
+fn validity_radius(sigma: f32, delta: f32) -> f32 {
     var r = params.max_radius;
     let magnitude = abs(sigma);
     if (magnitude > 0.0) {
         let c = select(-log(1.0 - params.epsilon), log(1.0 + params.epsilon), sigma < 0.0);
-        r = min(params.delta + c / magnitude, params.max_radius);
+        r = min(delta + c / magnitude, params.max_radius);
     }
     return max(r, params.min_radius);
+}
+
+// How far along one half-axis an entry's zone may reach before the medium differs from its
+// centre's: the extrapolation's log-irradiance gradient is the centre's, the true one changes
+// with the extinction, so the walk stops where ∫|σt(x) − σt(x0)| dx exceeds ln(1 + ε) (a
+// zone in soft tissue does not reach into the bone beside it). Half-voxel steps.
+fn extinction_reach(x0: vec3<f32>, axis: vec3<f32>, limit: f32) -> f32 {
+    let sigma0 = medium_at(x0).a;
+    let tolerance = log(1.0 + params.epsilon);
+    let step = 0.5 * params.voxel;
+    var excess = 0.0;
+    var s = 0.0;
+    loop {
+        if (s >= limit) {
+            return limit;
+        }
+        s += step;
+        excess += abs(medium_at(x0 + axis * s).a - sigma0) * step;
+        if (excess > tolerance) {
+            return max(s - step, params.min_radius);
+        }
+    }
+    return limit;
 }
 
 fn radius_of(entry: u32, half_axis: u32) -> f32 {
@@ -318,6 +356,11 @@ struct Prediction {
 
 fn entry_predict(e: u32, x: vec3<f32>) -> Prediction {
     let none = Prediction(0.0, vec3<f32>(0.0));
+    let bound = bounds[e];
+    let offset = x - bound.xyz;
+    if (dot(offset, offset) >= bound.w * bound.w) {
+        return none;
+    }
     let entry = entries[e];
     let local = local_coordinates(entry, x);
     let h = local.half_axes;
@@ -339,7 +382,7 @@ fn entry_predict(e: u32, x: vec3<f32>) -> Prediction {
         sigma = (a.x * entry.sigma[h.x] + a.y * entry.sigma[h.y] + a.z * entry.sigma[h.z]) / a_sum;
     }
     // Fig. 4: beyond the radius the interpolated coefficient gives, the entry is not used.
-    if (dist > validity_radius(sigma.w)) {
+    if (dist > validity_radius(sigma.w, entry.delta)) {
         return none;
     }
     let d = 1.0 - sqrt(q);

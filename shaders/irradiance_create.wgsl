@@ -35,7 +35,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
             let half_axis = point - 1u;
             let frame = orthonormal_basis(req.normal);
             let sign = select(1.0, -1.0, (half_axis & 1u) == 1u);
-            y += frame[half_axis / 2u] * (sign * params.delta);
+            y += frame[half_axis / 2u] * (sign * req.delta);
         }
         let e = irradiance_sample(y, &rng);
         let lum = luminance(e);
@@ -88,18 +88,18 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         let e0 = max(mean, vec3<f32>(IRRADIANCE_FLOOR));
         let lum0 = max(mean_lum, IRRADIANCE_FLOOR);
         // Coefficients beyond this would only extrapolate noise across a voxel or two.
-        let limit = log(1e6) / params.delta;
+        let limit = log(1e6) / r.delta;
         for (var h = 0u; h < 6u; h++) {
             let e = r.sums[1u + h].rgb / n;
-            let rgb = -log(max(e, vec3<f32>(IRRADIANCE_FLOOR)) / e0) / params.delta;
-            let lum = -log(max(luminance(e), IRRADIANCE_FLOOR) / lum0) / params.delta;
+            let rgb = -log(max(e, vec3<f32>(IRRADIANCE_FLOOR)) / e0) / r.delta;
+            let lum = -log(max(luminance(e), IRRADIANCE_FLOOR) / lum0) / r.delta;
             entry.sigma[h] = clamp(vec4<f32>(rgb, lum), vec4<f32>(-limit), vec4<f32>(limit));
         }
         entry.opacity_lo = r.opacity_lo;
         entry.opacity_hi = r.opacity_hi;
         entry.colour_lo = r.colour_lo;
         entry.colour_hi = r.colour_hi;
-        entry.pad0 = 0u;
+        entry.delta = r.delta;
         r.entry = entry;
         r.state = REQUEST_DONE;
     }

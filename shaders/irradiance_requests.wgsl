@@ -1,13 +1,17 @@
-// Technique `irradiance`, once per frame after the creation rounds: one workgroup turns this
-// frame's claims into requests and stores the finished entries. First, every lock (octree node
-// or image block) claimed by a cache miss and not held by a pending request gets a request,
-// in lock order, while fewer than max_pending are pending; its local frame is oriented along
-// the extinction gradient there (§4.2). Then the finished requests' entries are appended to the
-// cache in request order (with the radii of Eq. 9–10), their locks released, and the pending
-// requests moved together. Everything is in a fixed order, so a run is repeatable.
+// Technique `irradiance`, once per frame after the creation rounds: one workgroup stores the
+// finished entries and turns this frame's claims into requests. First, the finished requests'
+// entries are appended to the cache in request order (with the radii of Eq. 9–10, cut where
+// the medium changes), their locks released a frame later, and the pending requests moved
+// together. Then every lock (octree node or image block) claimed by a cache miss and not held
+// gets a request, in lock order, while fewer than max_pending are pending; its local frame is
+// oriented along the extinction gradient there (§4.2). Everything is in a fixed order, so a
+// run is repeatable.
 // Rust twin: server/engine/src/passes/irradiance.rs.
 
 const WG: u32 = 256u;
+// Lock states (words at node_held_offset / block_held_offset).
+const LOCK_HELD: u32 = 1u;
+const LOCK_COOLING: u32 = 2u;
 
 var<workgroup> scan_buf: array<u32, 256>;
 var<workgroup> start_entries: u32;
@@ -47,8 +51,60 @@ fn main(@builtin(local_invocation_index) t: u32) {
     }
     let may_create = (params.flags & FLAG_NO_CREATION) == 0u;
 
+    // Finished requests → entries; the rest move together. A finished request's lock cools
+    // for a frame (LOCK_COOLING): its entry is in the octree only from the next frame on, so
+    // this frame's claims near it are not taken.
+    var kept = 0u;
+    for (var base = 0u; base < params.pending; base += WG) {
+        let i = base + t;
+        var r: Request;
+        var done = 0u;
+        var keep = 0u;
+        if (i < params.pending) {
+            r = requests[i];
+            done = select(0u, 1u, r.state == REQUEST_DONE);
+            keep = 1u - done;
+        }
+        let done_scan = exclusive_scan(t, done);
+        let keep_scan = exclusive_scan(t, keep);
+        storageBarrier();
+        workgroupBarrier();
+        if (done == 1u) {
+            let e = entry_count + done_scan.x;
+            if (e < params.entry_capacity) {
+                entries[e] = r.entry;
+                let frame = orthonormal_basis(r.entry.normal);
+                var reach = 0.0;
+                for (var h = 0u; h < 6u; h++) {
+                    let sign = select(1.0, -1.0, (h & 1u) == 1u);
+                    let radius = extinction_reach(
+                        r.entry.position,
+                        frame[h / 2u] * sign,
+                        validity_radius(r.entry.sigma[h].w, r.entry.delta),
+                    );
+                    atomicStore(&radii[e * 6u + h], bitcast<u32>(radius));
+                    reach = max(reach, radius);
+                }
+                bounds[e] = vec4<f32>(r.entry.position, reach);
+                atomicAdd(&words[COUNTER_CREATED], 1u);
+            } else {
+                atomicAdd(&words[COUNTER_LOST], 1u);
+            }
+            atomicStore(&words[held_base + r.lock], LOCK_COOLING);
+        }
+        if (keep == 1u) {
+            requests[kept + keep_scan.x] = r;
+        }
+        entry_count = min(entry_count + done_scan.y, params.entry_capacity);
+        kept += keep_scan.y;
+        storageBarrier();
+        workgroupBarrier();
+    }
+    storageBarrier();
+    workgroupBarrier();
+
     // Claims → requests, while both the pending list and the cache have room.
-    var pending = params.pending;
+    var pending = kept;
     var limit = pending;
     if (may_create) {
         let room_left = params.entry_capacity - min(entry_count, params.entry_capacity);
@@ -60,7 +116,10 @@ fn main(@builtin(local_invocation_index) t: u32) {
         var wanted = 0u;
         if (lock < slots) {
             claim = atomicExchange(&words[claim_base + lock], NO_CLAIM);
-            if (claim != NO_CLAIM && atomicLoad(&words[held_base + lock]) == 0u) {
+            let held = atomicLoad(&words[held_base + lock]);
+            if (held == LOCK_COOLING) {
+                atomicStore(&words[held_base + lock], 0u);
+            } else if (claim != NO_CLAIM && held == 0u) {
                 wanted = 1u;
             }
         }
@@ -86,10 +145,10 @@ fn main(@builtin(local_invocation_index) t: u32) {
                 r.opacity_hi = bins.y;
                 r.colour_lo = 0u;
                 r.colour_hi = 0u;
-                r.pad0 = 0u;
+                r.delta = entry_delta(position);
                 r.pad1 = 0u;
                 requests[slot] = r;
-                atomicStore(&words[held_base + lock], 1u);
+                atomicStore(&words[held_base + lock], LOCK_HELD);
                 atomicAdd(&words[COUNTER_ISSUED], 1u);
             } else {
                 atomicAdd(&words[COUNTER_DROPPED], 1u);
@@ -99,47 +158,8 @@ fn main(@builtin(local_invocation_index) t: u32) {
     }
     storageBarrier();
     workgroupBarrier();
-
-    // Finished requests → entries; the rest move together.
-    var kept = 0u;
-    for (var base = 0u; base < pending; base += WG) {
-        let i = base + t;
-        var r: Request;
-        var done = 0u;
-        var keep = 0u;
-        if (i < pending) {
-            r = requests[i];
-            done = select(0u, 1u, r.state == REQUEST_DONE);
-            keep = 1u - done;
-        }
-        let done_scan = exclusive_scan(t, done);
-        let keep_scan = exclusive_scan(t, keep);
-        storageBarrier();
-        workgroupBarrier();
-        if (done == 1u) {
-            let e = entry_count + done_scan.x;
-            if (e < params.entry_capacity) {
-                entries[e] = r.entry;
-                for (var h = 0u; h < 6u; h++) {
-                    let radius = validity_radius(r.entry.sigma[h].w);
-                    atomicStore(&radii[e * 6u + h], bitcast<u32>(radius));
-                }
-                atomicAdd(&words[COUNTER_CREATED], 1u);
-            } else {
-                atomicAdd(&words[COUNTER_LOST], 1u);
-            }
-            atomicStore(&words[held_base + r.lock], 0u);
-        }
-        if (keep == 1u) {
-            requests[kept + keep_scan.x] = r;
-        }
-        entry_count = min(entry_count + done_scan.y, params.entry_capacity);
-        kept += keep_scan.y;
-        storageBarrier();
-        workgroupBarrier();
-    }
     if (t == 0u) {
-        atomicStore(&words[COUNTER_PENDING], kept);
+        atomicStore(&words[COUNTER_PENDING], pending);
         atomicStore(&words[COUNTER_ENTRIES], entry_count);
     }
 }

@@ -33,6 +33,8 @@ pub struct ConvergenceBench<'a> {
     pub bounces: u32,
     /// Where to write each case's pictures (reference, plain, irradiance at the last frame).
     pub dump: Option<&'a Path>,
+    /// The cache's configuration besides what each case sets.
+    pub config: IrradianceConfig,
 }
 
 /// Writes linear radiance as an sRGB PNG (exposure 1, clamped).
@@ -174,12 +176,24 @@ fn run_frames(
 ) -> anyhow::Result<(Vec<f64>, Vec<Duration>)> {
     let mut errors = Vec::with_capacity(frames as usize);
     let mut times = Vec::with_capacity(frames as usize);
+    let mut split = [Duration::ZERO; 4];
     for _ in 0..frames {
         let started = Instant::now();
-        technique.frame(engine, scene, true)?;
+        let t = technique.frame(engine, scene, true)?;
         times.push(started.elapsed());
+        for (s, d) in split
+            .iter_mut()
+            .zip([t.render, t.create, t.update, t.bookkeeping])
+        {
+            *s += d;
+        }
         errors.push(reference.error(&technique.read_estimate(engine)?.0));
     }
+    let ms = split.map(|d| d.as_secs_f64() * 1e3 / frames.max(1) as f64);
+    eprintln!(
+        "    per frame: render {:.1} ms, create {:.1} ms, update {:.1} ms, rest {:.1} ms",
+        ms[0], ms[1], ms[2], ms[3]
+    );
     Ok((errors, times))
 }
 
@@ -362,7 +376,7 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
                         priorities,
                         bounces: options.bounces,
                         frame_time: Some(frame_time),
-                        ..IrradianceConfig::default()
+                        ..options.config
                     };
                     let mut technique =
                         Irradiance::new(&engine, Arc::clone(&gpu_volume), &scene, config)?;
@@ -418,6 +432,8 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
                         "frame_ms_plain": frame_time.as_secs_f64() * 1e3,
                         "frame_ms_irradiance": frame_ms,
                         "reference_noise": reference.relative_noise(),
+                        "samples_per_pixel": technique.iteration(),
+                        "samples_per_pixel_plain": baseline.iteration(),
                     }));
                 }
             }
@@ -438,6 +454,7 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
         "frames": options.frames,
         "reference_spp": options.reference_spp,
         "bounces": options.bounces,
+        "max_radius_voxels": options.config.max_radius_voxels,
         "cases": cases,
         "mean_error_ratio": mean,
     }))
@@ -452,6 +469,7 @@ pub struct IrradianceTfEditBench<'a> {
     pub frames: u32,
     pub reference_spp: u32,
     pub historygrams: Historygrams,
+    pub config: IrradianceConfig,
 }
 
 /// `bench tf-edit --technique irradiance`: a cache built with one TF, then each edit applied
@@ -478,7 +496,7 @@ pub fn tf_edit(options: &IrradianceTfEditBench) -> anyhow::Result<serde_json::Va
         let config = IrradianceConfig {
             historygrams: options.historygrams,
             bounces: options.scenarios.bounces,
-            ..IrradianceConfig::default()
+            ..options.config
         };
         let mut builder = Irradiance::new(&engine, Arc::clone(&gpu_volume), &base, config)?;
         let started = Instant::now();

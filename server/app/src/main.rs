@@ -169,6 +169,10 @@ enum Command {
         /// `convergence`: datasets of ../shared/data.
         #[arg(long, value_delimiter = ',', default_value = "bonsai,chest,engine")]
         datasets: Vec<String>,
+        /// `convergence`, `tf-edit --technique irradiance`: largest cache-zone radius in voxels
+        /// (the technique's default when absent).
+        #[arg(long)]
+        max_radius: Option<f32>,
         /// `convergence`: write each case's pictures (PNG) to this folder.
         #[arg(long)]
         dump: Option<PathBuf>,
@@ -306,7 +310,15 @@ fn run() -> anyhow::Result<()> {
             build_frames,
             historygrams,
             dump,
+            max_radius,
         } => {
+            let irradiance_config = voxlight_engine::techniques::irradiance::IrradianceConfig {
+                max_radius_voxels: max_radius.unwrap_or(
+                    voxlight_engine::techniques::irradiance::IrradianceConfig::default()
+                        .max_radius_voxels,
+                ),
+                ..Default::default()
+            };
             let data = data.or_else(voxlight_volumes::testdata::shared_data_dir);
             let result = match name.as_str() {
                 "raymarch" => bench::raymarch(&bench::RaymarchBench {
@@ -343,6 +355,7 @@ fn run() -> anyhow::Result<()> {
                             frames: frames.unwrap_or(40).max(1),
                             reference_spp: reference_spp.unwrap_or(512).max(2),
                             historygrams,
+                            config: irradiance_config,
                         })?
                     } else {
                         bench::tf_edit(&scenarios)?
@@ -359,6 +372,7 @@ fn run() -> anyhow::Result<()> {
                         datasets: &datasets,
                         bounces: bounces.unwrap_or(DEFAULT_BOUNCES).max(1),
                         dump: dump.as_deref(),
+                        config: irradiance_config,
                     })?
                 }
                 "manylight" => bench_manylight::manylight(&bench_manylight::ManylightBench {

@@ -471,10 +471,10 @@ fn the_update_shrinks_zones_where_entries_disagree() {
         for (h, &radius) in r.iter().enumerate() {
             let initial = voxlight_engine::techniques::irradiance::validity_radius(
                 e.sigma[h][3],
-                2.0 * voxel,
+                e.delta,
                 0.1,
                 0.01 * voxel,
-                16.0 * voxel,
+                IrradianceConfig::default().max_radius_voxels * voxel,
             );
             assert!(
                 radius <= initial * 1.0001,

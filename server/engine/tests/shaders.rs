@@ -151,21 +151,21 @@ fn rust_and_wgsl_layouts_agree() {
                 max_radius, update_threshold, frame, flags, blocks_x, blocks_y, block_count,
                 node_count, refs_offset, node_claim_offset, node_held_offset, block_claim_offset,
                 block_held_offset, entry_capacity, max_pending, pending, min_samples, max_samples,
-                bounces, priority_offset, voxel, dark_floor, pad1, pad2),
+                bounces, priority_offset, voxel, dark_floor, delta_free_paths, pad2),
         );
         assert_layout(
             &module,
             "CacheEntry",
             size_of::<CacheEntry>(),
             fields!(CacheEntry: position, key, normal, samples, irradiance, opacity_lo, sigma,
-                opacity_hi, colour_lo, colour_hi, pad0),
+                opacity_hi, colour_lo, colour_hi, delta),
         );
         assert_layout(
             &module,
             "Request",
             size_of::<Request>(),
             fields!(Request: position, key, normal, lock, sums, count, state, opacity_lo,
-                opacity_hi, colour_lo, colour_hi, pad0, pad1, entry),
+                opacity_hi, colour_lo, colour_hi, delta, pad1, entry),
         );
         assert_layout(
             &module,

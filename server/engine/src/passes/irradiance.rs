@@ -1,7 +1,7 @@
 //! The five passes of technique `irradiance` (shaders/irradiance_*.wgsl): rendering, cache-entry
 //! creation rounds, the requests pass (claims → requests, finished requests → entries), the
 //! cache update and the rendering priorities. All bind the estimator's bindings 0–5
-//! (crate::passes::estimator) plus the technique's (6–15), through one bind group layout.
+//! (crate::passes::estimator) plus the technique's (6–16), through one bind group layout.
 
 use bytemuck::{Pod, Zeroable};
 
@@ -40,7 +40,7 @@ pub struct IrradianceParams {
     pub priority_offset: u32,
     pub voxel: f32,
     pub dark_floor: f32,
-    pub pad1: u32,
+    pub delta_free_paths: f32,
     pub pad2: u32,
 }
 
@@ -61,7 +61,8 @@ pub struct CacheEntry {
     pub opacity_hi: u32,
     pub colour_lo: u32,
     pub colour_hi: u32,
-    pub pad0: u32,
+    /// The entry's Δ (world units).
+    pub delta: f32,
 }
 
 impl CacheEntry {
@@ -96,7 +97,7 @@ pub struct Request {
     pub opacity_hi: u32,
     pub colour_lo: u32,
     pub colour_hi: u32,
-    pub pad0: u32,
+    pub delta: f32,
     pub pad1: u32,
     pub entry: CacheEntry,
 }
@@ -168,6 +169,7 @@ pub struct IrradianceBindings<'a> {
     pub blocks: &'a wgpu::Buffer,
     pub requests: &'a wgpu::Buffer,
     pub cell_bins: &'a wgpu::Buffer,
+    pub bounds: &'a wgpu::Buffer,
 }
 
 impl IrradiancePasses {
@@ -201,6 +203,7 @@ impl IrradiancePasses {
                 storage_entry(13, false),
                 storage_entry(14, false),
                 storage_entry(15, true),
+                storage_entry(16, false),
             ],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -263,6 +266,7 @@ impl IrradiancePasses {
                 buffer(13, b.blocks),
                 buffer(14, b.requests),
                 buffer(15, b.cell_bins),
+                buffer(16, b.bounds),
             ],
         })
     }

@@ -1,7 +1,9 @@
 //! The multi-reference octree that holds `irradiance`'s cache entries (the paper's §4.4, after
 //! Křivánek & Gautron): an entry is referenced by every node of one level that its zone's
-//! bounding box overlaps, the deepest level whose nodes are at least as wide as the box, so at
-//! most eight nodes. A lookup visits one node per level, from the root down to the deepest node
+//! bounding box overlaps: the deepest level at which that is at most `MAX_REFERENCES` nodes
+//! (at least the level whose nodes are as wide as the box, so eight nodes at most there). A
+//! long thin zone thus goes to finer nodes than its length alone would put it in, and lookups
+//! far from it along its short axes do not test it. A lookup visits one node per level, from the root down to the deepest node
 //! holding the point, and tests every entry referenced there: each entry at most once, and
 //! every entry whose box holds the point. Nodes are created where entries are stored, so the
 //! tree is finest where the cache is densest; the deepest node on a point's branch is the lock
@@ -13,6 +15,9 @@
 
 /// Levels of the tree at most (MAX_DEPTH in irradiance_common.wgsl).
 pub const MAX_DEPTH: u32 = 16;
+
+/// Nodes one entry is referenced from at most (beyond the level its widest extent fits).
+pub const MAX_REFERENCES: usize = 32;
 
 #[derive(Debug, Clone)]
 struct Node {
@@ -69,7 +74,7 @@ impl Octree {
 
     /// Most nodes one `insert` can create.
     pub fn max_new_nodes_per_insert(&self) -> usize {
-        8 * 8 * self.max_depth as usize
+        8 * MAX_REFERENCES * self.max_depth as usize
     }
 
     fn subdivide(&mut self, node: u32) -> u32 {
@@ -98,29 +103,50 @@ impl Octree {
         }
     }
 
-    /// References `entry` (whose zone lies within the box `centre ± half_extent`) from every
-    /// node of its level that the box overlaps, creating the nodes it needs.
-    pub fn insert(&mut self, entry: u32, centre: [f32; 3], half_extent: [f32; 3]) {
-        let level = self.level_for(half_extent);
+    /// The nodes of `level` the box `centre ± half_extent` overlaps, per axis.
+    fn overlapped(
+        &self,
+        level: u32,
+        centre: [f32; 3],
+        half_extent: [f32; 3],
+    ) -> [std::ops::RangeInclusive<u32>; 3] {
         let cells = 1u32 << level;
         let edge = self.root_edge / cells as f32;
-        let root_min = self.root_min;
-        let range = |k: usize| {
+        std::array::from_fn(|k| {
             let index = |x: f32| {
-                let i = ((x - root_min[k]) / edge).floor();
+                let i = ((x - self.root_min[k]) / edge).floor();
                 i.clamp(0.0, (cells - 1) as f32) as u32
             };
             index(centre[k] - half_extent[k])..=index(centre[k] + half_extent[k])
+        })
+    }
+
+    /// References `entry` (whose zone lies within the box `centre ± half_extent`) from every
+    /// node of its level that the box overlaps, creating the nodes it needs. Returns the
+    /// references made.
+    pub fn insert(&mut self, entry: u32, centre: [f32; 3], half_extent: [f32; 3]) -> usize {
+        let count = |r: &[std::ops::RangeInclusive<u32>; 3]| {
+            r.iter().map(|a| a.clone().count()).product::<usize>()
         };
-        for z in range(2) {
-            for y in range(1) {
-                for x in range(0) {
+        let mut level = self.level_for(half_extent);
+        while level < self.max_depth
+            && count(&self.overlapped(level + 1, centre, half_extent)) <= MAX_REFERENCES
+        {
+            level += 1;
+        }
+        let [xs, ys, zs] = self.overlapped(level, centre, half_extent);
+        let mut made = 0;
+        for z in zs {
+            for y in ys.clone() {
+                for x in xs.clone() {
                     let node = self.node_at_level([x, y, z], level);
                     self.nodes[node as usize].references.push(entry);
-                    self.references += 1;
+                    made += 1;
                 }
             }
         }
+        self.references += made;
+        made
     }
 
     /// The node at `level` with integer coordinates `cell` there, created if needed.
@@ -225,16 +251,20 @@ mod tests {
     }
 
     #[test]
-    fn an_entry_is_stored_at_the_level_its_box_fits_in_at_most_eight_nodes() {
-        let mut t = tree();
+    fn an_entry_goes_to_the_deepest_level_with_few_enough_nodes() {
+        let t = tree();
         // A box 0.1 wide fits nodes of edge 1/8 (level 3), not 1/16.
         assert_eq!(t.level_for([0.05; 3]), 3);
-        t.insert(7, [0.01, -0.2, 0.3], [0.05; 3]);
-        assert!((1..=8).contains(&t.reference_count()));
-        // Centred on a node corner it spans eight.
+        // A cube 0.1 wide on a node corner: 8 nodes of edge 1/16 would still do (level 4), 64 of
+        // 1/32 not.
         let mut t = tree();
-        t.insert(0, [0.0, 0.0, 0.0], [0.05; 3]);
-        assert_eq!(t.reference_count(), 8);
+        assert_eq!(t.insert(0, [0.0, 0.0, 0.0], [0.05; 3]), 8);
+        assert_eq!(t.branch([0.01, 0.01, 0.01]).len(), 5);
+        // A long thin zone goes deeper than its length alone would put it.
+        let mut t = tree();
+        let made = t.insert(1, [0.1, 0.1, 0.1], [0.2, 0.004, 0.004]);
+        assert!((1..=MAX_REFERENCES).contains(&made));
+        assert!(t.branch([0.1, 0.1, 0.1]).len() > t.level_for([0.2, 0.004, 0.004]) as usize + 1);
     }
 
     #[test]
