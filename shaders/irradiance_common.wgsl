@@ -54,7 +54,8 @@ struct IrradianceParams {
     // Δ of an entry is at most this many mean free paths at its centre (0: always delta): in
     // dense media the irradiance changes within a free path, far below two voxels.
     delta_free_paths: f32,
-    pad2: u32,
+    // Scattering events per camera sample along the marched view ray (FLAG_MARCHED_VIEW).
+    view_picks: u32,
 }
 
 // A cache entry: the irradiance at `position` and, per half-axis of its local frame (+t, −t,

@@ -2,14 +2,99 @@
 // paper's §7), one sample per pixel. A camera ray finds its first scattering event (delta
 // tracked, or picked along a jittered march: FLAG_MARCHED_VIEW); where
 // the cache covers that point its irradiance is used (isotropic phase function: radiance =
-// albedo · E / 4π), elsewhere the path tracer continues from it (plain MCVR) and the miss
-// claims the creation of a new entry there: the deepest octree node holding the point
+// albedo · E / 4π), elsewhere the path tracer continues from one of them (plain MCVR) and
+// that miss claims the creation of a new entry there: the deepest octree node holding the point
 // (object-space locking) or the block (screen-space locking, after a rejection test on the
 // block's share of misses). Rust twin: server/engine/src/passes/irradiance.rs.
 
 var<workgroup> block_rays: atomic<u32>;
 var<workgroup> block_misses: atomic<u32>;
+// The block's claim: its miss with the smallest key, and that miss's deepest octree node.
 var<workgroup> block_claim: atomic<u32>;
+var<workgroup> block_claim_node: u32;
+
+// A sample's scattering events (view_picks_along), and the octree node of each that missed.
+const MAX_VIEW_PICKS: u32 = 16u;
+var<private> picked_position: array<vec3<f32>, MAX_VIEW_PICKS>;
+var<private> picked_albedo: array<vec3<f32>, MAX_VIEW_PICKS>;
+var<private> miss_node_of: array<u32, MAX_VIEW_PICKS>;
+
+// The jittered view march of march.wgsl (same lattice, empty cells skipped, same cut-off):
+// the total weight Σ T·(1 − e^(−σt·dt)) and the transmittance through it.
+fn view_weight(origin: vec3<f32>, dir: vec3<f32>, t0: f32, t1: f32, jitter: f32) -> vec2<f32> {
+    var weight = 0.0;
+    var transmit = 1.0;
+    var k = 0.0;
+    loop {
+        let t = t0 + (k + jitter) * scene.step;
+        if (t >= t1 || transmit < VIEW_T_CUTOFF) {
+            break;
+        }
+        let p = origin + dir * t;
+        let cell = cell_of(box_relative(p));
+        if (cell_is_empty(cell)) {
+            k = skip_empty_cell(origin, dir, cell, t0, scene.step, jitter, k);
+            continue;
+        }
+        let alpha = 1.0 - exp(-medium_at(p).a * scene.step);
+        weight += transmit * alpha;
+        transmit *= 1.0 - alpha;
+        k += 1.0;
+    }
+    return vec2<f32>(weight, transmit);
+}
+
+// The same march again, taking `count` points at the cumulative weights (u + j)/count · total
+// (systematic resampling: point j stands for total / count of the weight).
+fn view_picks_along(
+    origin: vec3<f32>,
+    dir: vec3<f32>,
+    t0: f32,
+    t1: f32,
+    jitter: f32,
+    total: f32,
+    count: u32,
+    u: f32,
+) {
+    var cumulative = 0.0;
+    var transmit = 1.0;
+    var next = 0u;
+    var k = 0.0;
+    var last = origin + dir * t0;
+    loop {
+        let t = t0 + (k + jitter) * scene.step;
+        if (t >= t1 || transmit < VIEW_T_CUTOFF || next >= count) {
+            break;
+        }
+        let p = origin + dir * t;
+        let cell = cell_of(box_relative(p));
+        if (cell_is_empty(cell)) {
+            k = skip_empty_cell(origin, dir, cell, t0, scene.step, jitter, k);
+            continue;
+        }
+        let m = medium_at(p);
+        let alpha = 1.0 - exp(-m.a * scene.step);
+        cumulative += transmit * alpha;
+        if (alpha > 0.0) {
+            last = p;
+        }
+        loop {
+            if (next >= count || (u + f32(next)) / f32(count) * total >= cumulative) {
+                break;
+            }
+            picked_position[next] = p;
+            picked_albedo[next] = m.rgb;
+            next += 1u;
+        }
+        transmit *= 1.0 - alpha;
+        k += 1.0;
+    }
+    // Rounding can leave the last threshold a hair above the sum: the last point takes it.
+    for (var j = next; j < count; j++) {
+        picked_position[j] = last;
+        picked_albedo[j] = medium_at(last).rgb;
+    }
+}
 
 @compute @workgroup_size(16, 8)
 fn main(
@@ -28,6 +113,8 @@ fn main(
     let y = (block / params.blocks_x) * 8u + lid.y;
     let cache_on = (params.flags & FLAG_CACHE) != 0u;
     let screen_locking = (params.flags & FLAG_SCREEN_LOCKING) != 0u;
+    var my_claim = NO_CLAIM;
+    var my_node = 0u;
     if (x < scene.width && y < scene.height) {
         let pixel = y * scene.width + x;
         let before = accum[pixel];
@@ -37,57 +124,85 @@ fn main(
         let px = vec2<f32>(f32(x) + rng_next(&rng), f32(y) + rng_next(&rng));
         let dir = camera_ray_dir(scene, px);
         let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
-        // The first scattering event: delta tracked (Exposure Render), or picked among a
-        // jittered march's samples in proportion to T·(1 − e^(−σt·dt)) with the march's total
-        // weight and transmittance exact (no variance from whether the ray collides).
+        // The scattering events of this sample: one delta-tracked collision (Exposure Render),
+        // or `view_picks` points drawn along a jittered march in proportion to
+        // T·(1 − e^(−σt·dt)) by systematic resampling, each standing for weight / view_picks of
+        // the march's exact total weight (no variance from whether the ray collides, and the
+        // cached part of the in-scattering nearly noise-free).
         var weight = 0.0;
         var transmit = 1.0;
-        var p = vec3<f32>(0.0);
+        var picks = 0u;
         if (hit.x < hit.y) {
             if ((params.flags & FLAG_MARCHED_VIEW) != 0u) {
-                let picked = pick_scattering(scene.eye, dir, hit.x, hit.y, &rng);
-                weight = picked.weight_sum;
-                transmit = picked.transmit;
-                p = picked.position;
+                let jitter = rng_next(&rng);
+                let total = view_weight(scene.eye, dir, hit.x, hit.y, jitter);
+                weight = total.x;
+                transmit = total.y;
+                if (weight > 0.0) {
+                    picks = max(params.view_picks, 1u);
+                    view_picks_along(scene.eye, dir, hit.x, hit.y, jitter, weight, picks, rng_next(&rng));
+                }
             } else {
                 let event = delta_track(scene.eye, dir, hit.x, hit.y, &rng);
-                weight = event.y;
-                transmit = 1.0 - event.y;
-                p = scene.eye + dir * event.x;
+                if (event.y > 0.0) {
+                    weight = 1.0;
+                    transmit = 0.0;
+                    picks = 1u;
+                    picked_position[0] = scene.eye + dir * event.x;
+                    picked_albedo[0] = medium_at(picked_position[0]).rgb;
+                }
             }
         }
         var radiance = scene.env_radiance * transmit;
-        if (weight > 0.0) {
-            let albedo = medium_at(p).rgb;
-            var cached = Lookup(0.0, vec3<f32>(0.0), 0u);
+        var cached_sum = vec3<f32>(0.0);
+        var misses = 0u;
+        var miss = 0u;
+        var miss_node = 0u;
+        for (var j = 0u; j < picks; j++) {
+            var found = false;
             if (cache_on) {
-                cached = cache_lookup(p);
+                let cached = cache_lookup(picked_position[j]);
                 atomicAdd(&block_rays, 1u);
-            }
-            var scattered = vec3<f32>(0.0);
-            if (cached.weight > 0.0) {
-                scattered = albedo * cached.irradiance * INV_4PI;
-            } else {
-                if (any(albedo > vec3<f32>(0.0))) {
-                    scattered = albedo * direct_light(p, dir, &rng);
-                    let u1 = rng_next(&rng);
-                    let u2 = rng_next(&rng);
-                    let next = sample_hg(dir, scene.g, u1, u2);
-                    scattered += trace_radiance(p, next, albedo, 1u, params.bounces, &rng);
-                }
-                if (cache_on) {
-                    atomicAdd(&block_misses, 1u);
-                    aux = vec4<f32>(p, aux.w);
-                    // Claims are ordered by a per-frame random byte, then the pixel.
-                    let claim = (pcg_hash(pixel ^ pcg_hash(params.frame)) & 0xff000000u) | pixel;
-                    if (screen_locking) {
-                        atomicMin(&block_claim, claim);
-                    } else if (atomicLoad(&words[params.node_held_offset + cached.node]) == 0u) {
-                        atomicMin(&words[params.node_claim_offset + cached.node], claim);
-                    }
+                if (cached.weight > 0.0) {
+                    cached_sum += picked_albedo[j] * cached.irradiance * INV_4PI;
+                    found = true;
+                } else {
+                    miss_node_of[j] = cached.node;
                 }
             }
-            radiance += weight * scattered;
+            if (!found) {
+                // One miss, chosen uniformly, is path traced for all of them.
+                misses += 1u;
+                if (rng_next(&rng) * f32(misses) < 1.0) {
+                    miss = j;
+                }
+            }
+        }
+        var scattered = cached_sum;
+        if (misses > 0u) {
+            let p = picked_position[miss];
+            let albedo = picked_albedo[miss];
+            var traced = vec3<f32>(0.0);
+            if (any(albedo > vec3<f32>(0.0))) {
+                traced = albedo * direct_light(p, dir, &rng);
+                let u1 = rng_next(&rng);
+                let u2 = rng_next(&rng);
+                let next = sample_hg(dir, scene.g, u1, u2);
+                traced += trace_radiance(p, next, albedo, 1u, params.bounces, &rng);
+            }
+            scattered += f32(misses) * traced;
+            if (cache_on) {
+                atomicAdd(&block_misses, misses);
+                aux = vec4<f32>(p, aux.w);
+                // Claims are ordered by a per-frame random byte, then the pixel; a block puts
+                // forward one (one global atomic per block, not per miss).
+                my_claim = (pcg_hash(pixel ^ pcg_hash(params.frame)) & 0xff000000u) | pixel;
+                my_node = miss_node_of[miss];
+                atomicMin(&block_claim, my_claim);
+            }
+        }
+        if (picks > 0u) {
+            radiance += weight / f32(picks) * scattered;
         }
         accum[pixel] = before + vec4<f32>(radiance, 1.0);
         let lum = luminance(radiance);
@@ -95,17 +210,27 @@ fn main(
         pixel_aux[pixel] = aux;
     }
     workgroupBarrier();
+    let best = atomicLoad(&block_claim);
+    if (my_claim != NO_CLAIM && my_claim == best) {
+        block_claim_node = my_node;
+    }
+    workgroupBarrier();
     if (li == 0u && cache_on) {
         let rays = atomicLoad(&block_rays);
         let misses = atomicLoad(&block_misses);
         atomicAdd(&words[COUNTER_HITS], rays - misses);
         atomicAdd(&words[COUNTER_MISSES], misses);
-        if (screen_locking && misses > 0u) {
+        if (misses > 0u && screen_locking) {
             // §5.2: a block asks for a new entry with probability equal to its share of misses.
             let u = f32(pcg_hash(block ^ pcg_hash(params.frame ^ UPDATE_SALT)) >> 8u) / 16777216.0;
             if (u * f32(rays) < f32(misses)
                 && atomicLoad(&words[params.block_held_offset + block]) == 0u) {
-                atomicMin(&words[params.block_claim_offset + block], atomicLoad(&block_claim));
+                atomicMin(&words[params.block_claim_offset + block], best);
+            }
+        } else if (misses > 0u) {
+            let node = block_claim_node;
+            if (atomicLoad(&words[params.node_held_offset + node]) == 0u) {
+                atomicMin(&words[params.node_claim_offset + node], best);
             }
         }
     }

@@ -462,3 +462,30 @@ async fn technique_details_reach_stats_and_frames() {
     client.close().await;
     server.stop().await.unwrap();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn irradiance_sessions_report_their_cache() {
+    let server = TestServer::start(None).await.unwrap();
+    let mut client = Client::connect(&server.ws_url()).await.unwrap();
+    let mut hello = hello(32, "Ada");
+    hello["technique"] = "irradiance".into();
+    client.hello_with(hello).await.unwrap();
+    client
+        .send_json(json!({"type": "quality", "iterations": 24}))
+        .await
+        .unwrap();
+    let frame = client.frame_where(|f| f.meta.converged).await.unwrap();
+    assert_eq!(frame.meta.technique, "irradiance");
+    let details = &frame.meta.details;
+    assert_eq!(details.cache_active, Some(true), "{details:?}");
+    assert!(details.cache_entries.is_some(), "{details:?}");
+    assert!(details.octree_references.is_some(), "{details:?}");
+    let hit_rate = details.cache_hit_rate.unwrap_or(-1.0);
+    assert!((0.0..=1.0).contains(&hit_rate), "{details:?}");
+    assert!(
+        frame.distinct_colors() > 8,
+        "an irradiance picture of the phantom is not flat"
+    );
+    client.close().await;
+    server.stop().await.unwrap();
+}

@@ -1348,6 +1348,7 @@ function renderStatus() {
   $('st-lat').textContent = vx.lastLatencyMs == null ? 'edit→frame –' : `edit→frame ${Math.round(vx.lastLatencyMs)} ms`;
   if (st) {
     $('st-gpu').textContent = `gpu ${Number(st.gpu_ms || 0).toFixed(1)} ms · ${fmtBytes(st.memory_bytes || 0)}`;
+    $('st-details').textContent = fmtDetails(st.details || {});
     // Flow control and adaptation (what the server chose for this viewer's link).
     $('st-fps').title = `Frames displayed per second (last second). Server: ${Number(st.fps || 0).toFixed(0)} fps sent, ${st.frames_skipped || 0} frames skipped while busy, JPEG quality ${st.jpeg_quality || '?'}`;
   }
@@ -1391,6 +1392,25 @@ function fmtNum(x) {
   if (!Number.isFinite(x)) return '?';
   return (Math.abs(x) >= 100 ? Math.round(x).toString() : (+x.toPrecision(4)).toString()).replace('-', '−');
 }
+/**
+ * One line of a technique's figures (stats.details; only the fields it reports).
+ * @param {Record<string, any>} d
+ */
+function fmtDetails(d) {
+  const pct = (x) => `${Number(x).toFixed(0)}%`;
+  const parts = [];
+  if (d.cache_active === false) parts.push('cache off (anisotropic phase)');
+  if (d.cache_entries != null) parts.push(`cache ${d.cache_entries} entries`);
+  if (d.cache_hit_rate != null && d.cache_active !== false) parts.push(`hit ${pct(100 * d.cache_hit_rate)}`);
+  if (d.pending_entries) parts.push(`${d.pending_entries} pending`);
+  if (d.cache_entries_kept_pct != null) parts.push(`last TF edit kept ${pct(d.cache_entries_kept_pct)}`);
+  if (d.photons_in_map != null) parts.push(`${d.photons_in_map} photon paths`);
+  if (d.photons_retraced_pct != null) parts.push(`retraced ${pct(d.photons_retraced_pct)}`);
+  if (d.virtual_lights != null) parts.push(`${d.virtual_lights} virtual lights`);
+  if (d.light_paths_retraced_pct != null) parts.push(`paths retraced ${pct(d.light_paths_retraced_pct)}`);
+  return parts.join(' · ');
+}
+
 function fmtBytes(n) {
   if (n >= 1 << 30) return (n / (1 << 30)).toFixed(2) + ' GiB';
   if (n >= 1 << 20) return (n / (1 << 20)).toFixed(1) + ' MiB';

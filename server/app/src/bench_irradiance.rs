@@ -161,20 +161,63 @@ fn plain(bounces: u32) -> IrradianceConfig {
     IrradianceConfig {
         cache: false,
         priorities: false,
+        // Without a cache every event would be path traced: one is the cheapest.
+        view_picks: 1,
         bounces,
         ..IrradianceConfig::default()
     }
 }
 
-/// Runs `frames` frames, returning each frame's error and time.
+/// The paper's own error measure (the left side of its Eq. 5): the 95% confidence half-width
+/// of each pixel's mean from its samples' variance, averaged over the pixels, relative to the
+/// reference's mean luminance. It sees noise only, not bias.
+fn estimated_error(variance: &[f32], reference: &Reference) -> f64 {
+    let n = variance.len().max(1) as f64;
+    let half_width = variance
+        .iter()
+        .map(|&v| 1.96 * (v as f64).sqrt())
+        .sum::<f64>()
+        / n;
+    half_width / reference.mean_luminance.max(1e-12)
+}
+
+/// Errors of a run, per frame: against the reference, and as the paper estimates them.
+#[derive(Default)]
+struct Errors {
+    reference: Vec<f64>,
+    estimated: Vec<f64>,
+}
+
+/// One frame: its wall time and its split (render, create, update, rest); its errors are
+/// appended to `errors`.
+fn timed_frame(
+    engine: &Engine,
+    technique: &mut Irradiance,
+    scene: &Scene,
+    reference: &Reference,
+    errors: &mut Errors,
+) -> anyhow::Result<(Duration, [Duration; 4])> {
+    let started = Instant::now();
+    let t = technique.frame(engine, scene, true)?;
+    let elapsed = started.elapsed();
+    let (picture, variance) = technique.read_estimate(engine)?;
+    errors.reference.push(reference.error(&picture));
+    errors.estimated.push(estimated_error(&variance, reference));
+    Ok((elapsed, [t.render, t.create, t.update, t.bookkeeping]))
+}
+
+/// Runs `frames` frames, returning each frame's errors and time.
 fn run_frames(
     engine: &Engine,
     technique: &mut Irradiance,
     scene: &Scene,
     frames: u32,
     reference: &Reference,
-) -> anyhow::Result<(Vec<f64>, Vec<Duration>)> {
-    let mut errors = Vec::with_capacity(frames as usize);
+) -> anyhow::Result<(Errors, Vec<Duration>)> {
+    let mut errors = Errors {
+        reference: Vec::with_capacity(frames as usize),
+        estimated: Vec::with_capacity(frames as usize),
+    };
     let mut times = Vec::with_capacity(frames as usize);
     let mut split = [Duration::ZERO; 4];
     for _ in 0..frames {
@@ -187,7 +230,9 @@ fn run_frames(
         {
             *s += d;
         }
-        errors.push(reference.error(&technique.read_estimate(engine)?.0));
+        let (picture, variance) = technique.read_estimate(engine)?;
+        errors.reference.push(reference.error(&picture));
+        errors.estimated.push(estimated_error(&variance, reference));
     }
     let ms = split.map(|d| d.as_secs_f64() * 1e3 / frames.max(1) as f64);
     eprintln!(
@@ -235,6 +280,19 @@ fn entry_shape(
         "{samples:.0} samples per point, mean radius {:.1} voxels",
         radius * max_dim as f64
     ))
+}
+
+/// Runs a few frames of every pass once, so no measured frame pays for a shader's first use.
+fn warm_up(engine: &Engine, volume: &Arc<GpuVolume>, scene: &Scene) -> anyhow::Result<()> {
+    let config = IrradianceConfig {
+        fixed_rounds: Some((1, 1)),
+        ..IrradianceConfig::default()
+    };
+    let mut technique = Irradiance::new(engine, Arc::clone(volume), scene, config)?;
+    for _ in 0..4 {
+        technique.frame(engine, scene, true)?;
+    }
+    Ok(())
 }
 
 fn median(mut values: Vec<Duration>) -> Duration {
@@ -331,6 +389,7 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
                 options.size,
                 light_setup(lights, dataset_up(name))?,
             );
+            warm_up(&engine, &gpu_volume, &scene)?;
             let started = Instant::now();
             let reference = reference(
                 &engine,
@@ -345,14 +404,51 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
                 started.elapsed().as_secs_f64(),
                 reference.relative_noise()
             );
+            // Plain MCVR and every variant run interleaved, frame by frame, each variant's
+            // frame given the time the plain frame just before it took: the machine's speed
+            // drifts (a shared VM), and this keeps "equal time per frame" true under drift.
+            let variants: Vec<(bool, Locking)> = [false, true]
+                .into_iter()
+                .flat_map(|p| [(p, Locking::Object), (p, Locking::Screen)])
+                .collect();
             let mut baseline = Irradiance::new(
                 &engine,
                 Arc::clone(&gpu_volume),
                 &scene,
                 plain(options.bounces),
             )?;
-            let (plain_errors, plain_times) =
-                run_frames(&engine, &mut baseline, &scene, options.frames, &reference)?;
+            let mut techniques = variants
+                .iter()
+                .map(|&(priorities, locking)| {
+                    let config = IrradianceConfig {
+                        locking,
+                        priorities,
+                        bounces: options.bounces,
+                        frame_time: Some(Duration::from_millis(1)),
+                        ..options.config
+                    };
+                    Irradiance::new(&engine, Arc::clone(&gpu_volume), &scene, config)
+                })
+                .collect::<Result<Vec<_>, _>>()?;
+            let mut plain_run = Errors::default();
+            let mut plain_times = Vec::new();
+            let mut runs: Vec<Errors> = variants.iter().map(|_| Errors::default()).collect();
+            let mut times: Vec<Vec<Duration>> = variants.iter().map(|_| Vec::new()).collect();
+            let mut splits = vec![[Duration::ZERO; 4]; variants.len()];
+            for _ in 0..options.frames {
+                let t = timed_frame(&engine, &mut baseline, &scene, &reference, &mut plain_run)?;
+                plain_times.push(t.0);
+                for (i, technique) in techniques.iter_mut().enumerate() {
+                    technique.set_frame_time(Some(t.0));
+                    let (elapsed, split) =
+                        timed_frame(&engine, technique, &scene, &reference, &mut runs[i])?;
+                    times[i].push(elapsed);
+                    for (sum, d) in splits[i].iter_mut().zip(split) {
+                        *sum += d;
+                    }
+                }
+            }
+            let plain_errors = &plain_run.reference;
             let frame_time = median(plain_times.clone());
             let dump = |what: &str, picture: &[[f32; 3]]| -> anyhow::Result<()> {
                 match options.dump {
@@ -369,47 +465,33 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
             };
             dump("reference", &reference.mean)?;
             dump("plain", &baseline.read_estimate(&engine)?.0)?;
-            for priorities in [false, true] {
-                for locking in [Locking::Object, Locking::Screen] {
-                    let config = IrradianceConfig {
-                        locking,
-                        priorities,
-                        bounces: options.bounces,
-                        frame_time: Some(frame_time),
-                        ..options.config
-                    };
-                    let mut technique =
-                        Irradiance::new(&engine, Arc::clone(&gpu_volume), &scene, config)?;
-                    let (errors, times) =
-                        run_frames(&engine, &mut technique, &scene, options.frames, &reference)?;
-                    let ratio = mean_ratio(&plain_errors, &errors);
-                    let frame_ms = median(times).as_secs_f64() * 1e3;
-                    let shape = entry_shape(&engine, &mut technique, options.max_dim)?;
-                    dump(
-                        &format!(
-                            "irradiance-{}-{}",
-                            if priorities {
-                                "priorities"
-                            } else {
-                                "plain-order"
-                            },
-                            match locking {
-                                Locking::Object => "object",
-                                Locking::Screen => "screen",
-                            }
-                        ),
-                        &technique.read_estimate(&engine)?.0,
-                    )?;
-                    let stats = technique.cache_stats();
+            for (i, technique) in techniques.iter_mut().enumerate() {
+                let (priorities, locking) = variants[i];
+                {
+                    let errors = &runs[i].reference;
+                    let ratio = mean_ratio(plain_errors, errors);
+                    let estimated_ratio = mean_ratio(&plain_run.estimated, &runs[i].estimated);
+                    let frame_ms = median(times[i].clone()).as_secs_f64() * 1e3;
+                    let split = splits[i].map(|d| d.as_secs_f64() * 1e3 / options.frames as f64);
+                    let shape = entry_shape(&engine, technique, options.max_dim)?;
                     let locking_name = match locking {
                         Locking::Object => "object",
                         Locking::Screen => "screen",
                     };
+                    dump(
+                        &format!(
+                            "irradiance-{}-{locking_name}",
+                            if priorities { "priorities" } else { "in-turn" },
+                        ),
+                        &technique.read_estimate(&engine)?.0,
+                    )?;
+                    let stats = technique.cache_stats();
                     let last = options.frames as usize - 1;
                     eprintln!(
                         "{name}, {lights} light(s), priorities {priorities}, {locking_name} locking: \
-                         error ratio {ratio:.2} (last frame: plain {:.4}, irradiance {:.4}); \
-                         {} entries ({shape}), {} references, hit rate {:.2}; frame {:.1} ms vs plain {:.1} ms",
+                         error ratio {ratio:.2} (the paper's estimate: {estimated_ratio:.2}; last frame: plain {:.4}, irradiance {:.4}); \
+                         {} entries ({shape}), {} references, hit rate {:.2}; frame {:.1} ms vs plain {:.1} ms \
+                         (render {:.1}, create {:.1}, update {:.1}, rest {:.1}); {} vs {} image-equivalents",
                         plain_errors[last],
                         errors[last],
                         stats.entries,
@@ -417,6 +499,12 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
                         stats.hit_rate,
                         frame_ms,
                         frame_time.as_secs_f64() * 1e3,
+                        split[0],
+                        split[1],
+                        split[2],
+                        split[3],
+                        technique.iteration(),
+                        baseline.iteration(),
                     );
                     cases.push(json!({
                         "dataset": name,
@@ -424,6 +512,7 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
                         "priorities": priorities,
                         "locking": locking_name,
                         "error_ratio": ratio,
+                        "estimated_error_ratio": estimated_ratio,
                         "cache_entries": stats.entries,
                         "references": stats.references,
                         "hit_rate": stats.hit_rate,
@@ -434,6 +523,9 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
                         "reference_noise": reference.relative_noise(),
                         "samples_per_pixel": technique.iteration(),
                         "samples_per_pixel_plain": baseline.iteration(),
+                        "ms_per_frame_split": {
+                            "render": split[0], "create": split[1], "update": split[2], "rest": split[3],
+                        },
                     }));
                 }
             }
@@ -444,6 +536,11 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
         .filter_map(|c| c["error_ratio"].as_f64())
         .collect();
     let mean = ratios.iter().sum::<f64>() / ratios.len().max(1) as f64;
+    let estimated: Vec<f64> = cases
+        .iter()
+        .filter_map(|c| c["estimated_error_ratio"].as_f64())
+        .collect();
+    let mean_estimated = estimated.iter().sum::<f64>() / estimated.len().max(1) as f64;
     Ok(json!({
         "bench": "convergence",
         "adapter": engine.gpu.adapter_name(),
@@ -457,6 +554,7 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
         "max_radius_voxels": options.config.max_radius_voxels,
         "cases": cases,
         "mean_error_ratio": mean,
+        "mean_estimated_error_ratio": mean_estimated,
     }))
 }
 
@@ -498,6 +596,7 @@ pub fn tf_edit(options: &IrradianceTfEditBench) -> anyhow::Result<serde_json::Va
             bounces: options.scenarios.bounces,
             ..options.config
         };
+        warm_up(&engine, &gpu_volume, &base)?;
         let mut builder = Irradiance::new(&engine, Arc::clone(&gpu_volume), &base, config)?;
         let started = Instant::now();
         for _ in 0..options.build_frames {
@@ -528,8 +627,9 @@ pub fn tf_edit(options: &IrradianceTfEditBench) -> anyhow::Result<serde_json::Va
                 &scene,
                 plain(config.bounces),
             )?;
-            let (plain_errors, plain_times) =
+            let (plain, plain_times) =
                 run_frames(&engine, &mut baseline, &scene, options.frames, &reference)?;
+            let plain_errors = plain.reference;
             let frame_time = median(plain_times);
             let change = Change::tf(&base.tf, &scene.tf);
             let mut runs = Vec::new();
@@ -548,7 +648,7 @@ pub fn tf_edit(options: &IrradianceTfEditBench) -> anyhow::Result<serde_json::Va
                 let kept = technique.cache_stats().entries;
                 let (errors, _) =
                     run_frames(&engine, &mut technique, &scene, options.frames, &reference)?;
-                runs.push((kept, edit_ms, errors));
+                runs.push((kept, edit_ms, errors.reference));
             }
             let (kept, edit_ms, hist_errors) = &runs[0];
             let (_, _, clear_errors) = &runs[1];

@@ -9,7 +9,7 @@ mod common;
 use std::sync::Arc;
 
 use common::*;
-use voxlight_engine::techniques::irradiance::{Irradiance, IrradianceConfig, Locking};
+use voxlight_engine::techniques::irradiance::{Irradiance, IrradianceConfig, Locking, ViewEvent};
 use voxlight_engine::{GpuVolume, Renderer, Scene, Technique};
 use voxlight_protocol::{Light, TfPoint, TransferFunction};
 use voxlight_volumes::Volume;
@@ -71,10 +71,10 @@ fn white_furnace_is_exact_through_the_cache() {
         1000,
     );
     let mut renderer = irradiance(volume, &s, fixed(IrradianceConfig::default()));
-    let hdr = run(&mut renderer, &s, 12);
+    let hdr = run(&mut renderer, &s, 16);
     let stats = details(&renderer);
     assert!(stats.cache_entries.unwrap() > 0, "{stats:?}");
-    assert!(stats.cache_hit_rate.unwrap() > 0.5, "{stats:?}");
+    assert!(stats.cache_hit_rate.unwrap() > 0.25, "{stats:?}");
     for (i, px) in hdr.iter().enumerate() {
         for k in 0..3 {
             assert!(
@@ -140,6 +140,34 @@ fn multiple_scattering_converges_to_pathtrace() {
     assert!(stats.cache_entries.unwrap() >= 30, "{stats:?}");
     assert!(stats.cache_hit_rate.unwrap() > 0.3, "{stats:?}");
     assert!(stats.octree_references.unwrap() >= stats.cache_entries.unwrap() as u64);
+}
+
+#[test]
+fn several_events_per_sample_and_delta_tracking_converge_to_pathtrace_too() {
+    let (_, volume) = sphere(40);
+    let s = lit_sphere(48);
+    let want = reference("pathtrace", volume.clone(), &s, 256);
+    for config in [
+        IrradianceConfig {
+            view_picks: 8,
+            ..Default::default()
+        },
+        IrradianceConfig {
+            view_event: ViewEvent::DeltaTracking,
+            ..Default::default()
+        },
+    ] {
+        let mut renderer = irradiance(volume.clone(), &s, fixed(config));
+        let hdr = run(&mut renderer, &s, 32);
+        let (got, exp) = (lum_of(mean(&hdr)), lum_of(mean(&want)));
+        assert!(
+            (got / exp - 1.0).abs() < 0.02,
+            "{:?}/{}: mean {got} vs pathtrace {exp} ({:?})",
+            config.view_event,
+            config.view_picks,
+            details(&renderer)
+        );
+    }
 }
 
 #[test]

@@ -41,7 +41,7 @@ pub struct IrradianceParams {
     pub voxel: f32,
     pub dark_floor: f32,
     pub delta_free_paths: f32,
-    pub pad2: u32,
+    pub view_picks: u32,
 }
 
 /// Matches `CacheEntry` in irradiance_common.wgsl.

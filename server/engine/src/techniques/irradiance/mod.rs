@@ -138,6 +138,10 @@ pub struct IrradianceConfig {
     pub invalidation: Invalidation,
     pub historygrams: Historygrams,
     pub view_event: ViewEvent,
+    /// Scattering events per camera sample with `ViewEvent::Marched` (1–16): drawn by
+    /// systematic resampling along the march, cached ones cost a lookup each, and one of those
+    /// the cache misses is path traced for all of them.
+    pub view_picks: u32,
     /// How often the octree is rebuilt with the radii the update shrank.
     pub rebuild_interval: Duration,
     /// Time over which the hit rate is measured.
@@ -178,6 +182,9 @@ impl Default for IrradianceConfig {
             invalidation: Invalidation::Historygram,
             historygrams: Historygrams::Samples,
             view_event: ViewEvent::Marched,
+            // More events make cached samples less noisy but cost a second march and a lookup
+            // each; at the cache coverage reached on lavapipe that did not pay (benchmarks.md).
+            view_picks: 1,
             rebuild_interval: Duration::from_millis(1000),
             hit_rate_window: Duration::from_millis(100),
             fixed_rounds: None,
@@ -356,6 +363,14 @@ impl ReadbackLayout {
 fn smooth(old: Option<f64>, new: f64) -> f64 {
     match old {
         Some(old) => 0.7 * old + 0.3 * new,
+        None => new,
+    }
+}
+
+/// Smoothing that one outlier (at most 4× the estimate) cannot wreck.
+fn robust_smooth(old: Option<f64>, new: f64) -> f64 {
+    match old {
+        Some(old) => smooth(Some(old), new.min(4.0 * old)),
         None => new,
     }
 }
@@ -788,7 +803,7 @@ impl Irradiance {
             voxel: self.voxel,
             dark_floor: self.config.dark_floor * brightest_irradiance(scene),
             delta_free_paths: self.config.delta_free_paths,
-            pad2: 0,
+            view_picks: self.config.view_picks,
         };
         engine
             .gpu
@@ -1416,14 +1431,20 @@ impl Irradiance {
         if create_rounds > 0 && pending > 0 {
             self.creation_credit -= times.create.as_secs_f64();
             let cost = times.create.as_secs_f64() / (create_rounds * pending) as f64;
-            self.request_round_cost = Some(smooth(self.request_round_cost, cost));
+            self.request_round_cost = Some(robust_smooth(self.request_round_cost, cost));
             self.stats.creation_rounds += create_rounds as u64;
+        } else if let Some(cost) = &mut self.request_round_cost {
+            // An estimate that keeps every round from running heals (a first dispatch that
+            // compiled the shader, a busy machine).
+            *cost *= 0.95;
         }
         if update_rounds > 0 && cache_on {
             self.update_credit -= times.update.as_secs_f64();
             let cost = times.update.as_secs_f64() / update_rounds as f64;
-            self.update_round_cost = Some(smooth(self.update_round_cost, cost));
+            self.update_round_cost = Some(robust_smooth(self.update_round_cost, cost));
             self.stats.update_rounds += update_rounds as u64;
+        } else if let Some(cost) = &mut self.update_round_cost {
+            *cost *= 0.95;
         }
         if self.config.priorities {
             let at = layout.priorities as usize;
@@ -1537,6 +1558,11 @@ impl Irradiance {
         Ok(())
     }
 
+    /// Sets the time per frame (None: an image's worth of blocks per frame).
+    pub fn set_frame_time(&mut self, frame_time: Option<Duration>) {
+        self.config.frame_time = frame_time;
+    }
+
     /// Sets how TF edits treat the cache.
     pub fn set_invalidation(&mut self, invalidation: Invalidation) {
         self.config.invalidation = invalidation;
@@ -1612,7 +1638,8 @@ fn validate(config: &IrradianceConfig) -> Result<(), EngineError> {
         && (0.0..1.0).contains(&config.dark_floor)
         && config.min_samples <= config.max_samples
         && config.max_pending.is_none_or(|p| (1..=65535).contains(&p))
-        && config.lock_depth.is_none_or(|d| d <= 6);
+        && config.lock_depth.is_none_or(|d| d <= 6)
+        && (1..=16).contains(&config.view_picks);
     if ok {
         Ok(())
     } else {
@@ -1779,7 +1806,8 @@ impl Technique for Irradiance {
             cache_active: Some(cache.active),
             cache_entries_kept_pct: cache
                 .last_edit
-                .map(|(before, kept)| 100.0 * kept as f32 / before.max(1) as f32),
+                .filter(|&(before, _)| before > 0)
+                .map(|(before, kept)| 100.0 * kept as f32 / before as f32),
             ..TechniqueStats::default()
         }
     }
