@@ -382,6 +382,7 @@ async fn loadgen_measures_latency_and_frame_rates() {
         },
         dataset: None,
         technique: None,
+        technique_options: None,
         token: None,
         edit_rate: 5.0,
         tf_interval: Duration::from_secs(1),
@@ -422,6 +423,7 @@ async fn loadgen_measures_latency_and_frame_rates() {
         },
         dataset: None,
         technique: None,
+        technique_options: None,
         token: None,
         edit_rate: 5.0,
         tf_interval: Duration::from_secs(1),
@@ -487,5 +489,117 @@ async fn irradiance_sessions_report_their_cache() {
         "an irradiance picture of the phantom is not flat"
     );
     client.close().await;
+    server.stop().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn technique_options_configure_the_session_and_reach_every_viewer() {
+    let server = TestServer::start(None).await.unwrap();
+    // Out-of-range options are refused before anything is built, naming the option.
+    let mut refused = Client::connect(&server.ws_url()).await.unwrap();
+    let mut bad = hello(32, "Eve");
+    bad["technique"] = "manylight".into();
+    bad["technique_options"] = json!({"manylight": {"nodes": 40}});
+    match refused.hello_with(bad).await.unwrap() {
+        ServerMessage::Error { code, message } => {
+            assert_eq!(code, ErrorCode::BadValue);
+            assert!(message.contains("manylight.nodes"), "{message}");
+        }
+        other => panic!("expected an error, got {other:?}"),
+    }
+    refused.close().await;
+
+    let mut ada = Client::connect(&server.ws_url()).await.unwrap();
+    let mut start = hello(32, "Ada");
+    start["technique"] = "manylight".into();
+    start["technique_options"] = json!({"manylight": {"virtual_lights": 24, "face_res": 8}});
+    let welcome = ada.hello_with(start).await.unwrap();
+    let ServerMessage::Welcome { state, .. } = &welcome else {
+        panic!("expected welcome, got {welcome:?}");
+    };
+    assert_eq!(state.technique_options.manylight.virtual_lights, Some(24));
+    ada.send_json(json!({"type": "quality", "iterations": 2}))
+        .await
+        .unwrap();
+    let frame = ada.frame_where(|f| f.meta.converged).await.unwrap();
+    // Whole light paths are kept while they fit: at most the 24 asked for.
+    let lights = frame.meta.details.virtual_lights.unwrap_or(0);
+    assert!((12..=24).contains(&lights), "{:?}", frame.meta.details);
+    // Slots for 24 + 24/4 lights, each a cube of 6 faces of 8² texels × 8 nodes × 4 bytes.
+    let maps_8 = frame.meta.details.shadow_map_bytes.unwrap_or(0);
+    assert_eq!(maps_8, 30 * 6 * 8 * 8 * 8 * 4);
+
+    // A joiner sees the options in the state it is handed.
+    let mut bob = Client::connect(&server.ws_url()).await.unwrap();
+    let joined = bob
+        .hello_with(join(&session_id(&welcome), "Bob"))
+        .await
+        .unwrap();
+    let ServerMessage::Welcome { state, .. } = &joined else {
+        panic!("expected welcome, got {joined:?}");
+    };
+    assert_eq!(state.technique_options.manylight.face_res, Some(8));
+
+    // An edit changes only what it names, and every viewer learns it.
+    ada.send_json(json!({"type": "technique", "name": "manylight",
+        "options": {"manylight": {"face_res": 16}}}))
+        .await
+        .unwrap();
+    let edit = bob
+        .text_where(|m| matches!(m, ServerMessage::Edited { by, .. } if by.name == "Ada"))
+        .await
+        .unwrap();
+    let ServerMessage::Edited { edit, .. } = edit else {
+        unreachable!()
+    };
+    let ClientMessage::Technique { name, options } = *edit else {
+        panic!("expected the technique edit, got {edit:?}");
+    };
+    assert_eq!(name, "manylight");
+    assert_eq!(options.map(|o| o.manylight.face_res), Some(Some(16)));
+    let frame = bob
+        .frame_where(|f| f.meta.converged && f.meta.details.shadow_map_bytes != Some(maps_8))
+        .await
+        .unwrap();
+    assert_eq!(frame.meta.details.virtual_lights, Some(lights), "kept");
+    // Four times the texels per face: four times the shadow-map bytes.
+    assert_eq!(frame.meta.details.shadow_map_bytes, Some(4 * maps_8));
+
+    // A bad edit is refused and changes nothing; the session goes on.
+    ada.send_json(json!({"type": "technique", "name": "manylight",
+        "options": {"manylight": {"vsl_radius": 3.0}}}))
+        .await
+        .unwrap();
+    let error = ada
+        .text_where(|m| matches!(m, ServerMessage::Error { .. }))
+        .await
+        .unwrap();
+    assert!(
+        matches!(&error, ServerMessage::Error { code: ErrorCode::BadValue, message } if message.contains("manylight.vsl_radius")),
+        "{error:?}"
+    );
+    ada.send_json(json!({"type": "technique", "name": "manylight",
+        "options": {"manylight": {"bogus": 1}}}))
+        .await
+        .unwrap();
+    let error = ada
+        .text_where(|m| matches!(m, ServerMessage::Error { .. }))
+        .await
+        .unwrap();
+    assert!(
+        matches!(&error, ServerMessage::Error { message, .. } if message.contains("bogus")),
+        "{error:?}"
+    );
+    ada.send_json(json!({"type": "technique", "name": "irradiance",
+        "options": {"irradiance": {"locking": "screen", "priorities": false}}}))
+        .await
+        .unwrap();
+    let frame = ada
+        .frame_where(|f| f.meta.technique == "irradiance" && f.meta.converged)
+        .await
+        .unwrap();
+    assert_eq!(frame.meta.details.cache_active, Some(true));
+    ada.close().await;
+    bob.close().await;
     server.stop().await.unwrap();
 }

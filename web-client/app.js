@@ -133,6 +133,8 @@ const local = {
   lights: [],
   jpeg_quality: 80,
   iterations: 64,
+  /** Technique options as set in the session, one group per technique (absent: default). */
+  techniqueOptions: /** @type {Record<string, Record<string, any>>} */ ({}),
   /** The home camera for double-click reset. */
   home: Cam.cloneCamera(Cam.DEFAULT_CAMERA),
 };
@@ -292,8 +294,15 @@ conn.addEventListener('message', (/** @type {any} */ e) => {
         toast('error', err.code, `${err.message}; retrying`);
         break;
       }
-      // The failed edit will not be echoed: stop waiting for our own echoes.
-      if (conn.ready) resetOwnEdits();
+      // The failed edit will not be echoed: stop waiting for our own echoes, and show the
+      // technique and options the session kept (a refused switch or option changes nothing).
+      if (conn.ready) {
+        resetOwnEdits();
+        if (vx.state) {
+          local.techniqueOptions = structuredClone(vx.state.technique_options || {});
+          setTechnique(vx.state.technique);
+        }
+      }
       toast('error', err.code, err.message);
       break;
     }
@@ -402,6 +411,7 @@ function applyEdit(edit) {
     case 'params':
       return setParams(edit);
     case 'technique':
+      if (edit.options) overlayOptions(edit.options);
       return setTechnique(edit.name);
     case 'quality':
       return setIterations(edit.iterations);
@@ -424,7 +434,10 @@ function mirrorEdit(edit) {
   else if (type === 'tf') st.tf = body;
   else if (type === 'lights') st.lights = body.lights;
   else if (type === 'params') st.params = { ...st.params, ...body };
-  else if (type === 'technique') st.technique = body.name;
+  else if (type === 'technique') {
+    st.technique = body.name;
+    if (body.options) st.technique_options = overlaid(st.technique_options || {}, body.options);
+  }
   else if (type === 'viewport') st.viewport = body;
   else if (type === 'quality' && Number.isFinite(body.iterations)) st.iterations = body.iterations;
 }
@@ -1151,6 +1164,7 @@ $('technique').addEventListener('change', () => {
   if (send('technique', { name })) {
     local.technique = name;
     showTechniqueDesc();
+    renderTechniqueOptions();
   }
 });
 
@@ -1257,7 +1271,10 @@ function applyState(s, keep = () => false) {
   if (s.tf && !keep('tf')) setTf(s.tf.points);
   if (!keep('params')) setParams(s.params);
   if (Array.isArray(s.lights) && !keep('lights')) lightsToControls(s.lights);
-  if (!keep('technique')) setTechnique(s.technique);
+  if (!keep('technique')) {
+    local.techniqueOptions = structuredClone(s.technique_options || {});
+    setTechnique(s.technique);
+  }
   if (Number.isFinite(s.jpeg_quality)) local.jpeg_quality = s.jpeg_quality;
   sJpeg.set(local.jpeg_quality);
   if (!keep('quality')) setIterations(s.iterations);
@@ -1295,7 +1312,92 @@ function setTechnique(name) {
     $('technique').value = name;
   }
   showTechniqueDesc();
+  renderTechniqueOptions();
   return typeof name === 'string';
+}
+
+/** `base` with every option `edit` sets taken from `edit` (as the server overlays them). */
+function overlaid(/** @type {any} */ base, /** @type {any} */ edit) {
+  const out = structuredClone(base || {});
+  for (const [group, fields] of Object.entries(edit || {})) {
+    if (fields && typeof fields === 'object') out[group] = { ...(out[group] || {}), ...fields };
+  }
+  return out;
+}
+
+function overlayOptions(/** @type {any} */ edit) {
+  local.techniqueOptions = overlaid(local.techniqueOptions, edit);
+}
+
+/**
+ * The options the panel offers per technique (the server's `default_options` give the
+ * defaults; any value the session holds is shown even when not in the list).
+ * @type {Record<string, {key: string, label: string, title: string, values: any[]}[]>}
+ */
+const OPTION_CONTROLS = {
+  photon: [
+    { key: 'photons_per_pass', label: 'Photons/pass', title: 'Photon paths traced per progressive pass', values: [4096, 16384, 65536] },
+    { key: 'bounces', label: 'Bounces', title: 'Scattering events stored per photon path (1: single scattering)', values: [1, 2, 4, 8] },
+    { key: 'segments', label: 'Segments', title: 'View-ray segments per pixel (Vn)', values: [4, 8, 16] },
+    { key: 'invalidation', label: 'TF-edit test', title: 'How a TF edit finds the view-ray segments to gather again', values: ['dirty_cells', 'spatial3x64', 'any_photon'] },
+  ],
+  manylight: [
+    { key: 'virtual_lights', label: 'Virtual lights', title: 'Virtual spherical lights stored', values: [64, 256, 1000, 2000] },
+    { key: 'transmittance', label: 'Transmittance', title: 'From each virtual light: shadow-map lookup (point or interpolated) or a ray marched', values: ['avsm_trilinear', 'avsm_point', 'ray_marched'] },
+    { key: 'face_res', label: 'Shadow maps', title: 'Shadow-map texels per cube-face edge', values: [16, 24, 48] },
+    { key: 'vsl_radius', label: 'Light radius', title: 'Radius of a virtual spherical light (world units; the volume is 1 across)', values: [0.01, 0.02, 0.05] },
+  ],
+  irradiance: [
+    { key: 'cache', label: 'Cache', title: 'Use the irradiance cache (off: plain Monte Carlo)', values: [true, false] },
+    { key: 'locking', label: 'Locking', title: 'Locks while an entry is created: octree node (object) or image block (screen)', values: ['object', 'screen'] },
+    { key: 'priorities', label: 'Priorities', title: 'Render image blocks by expected gain instead of in turn', values: [true, false] },
+    { key: 'max_radius_voxels', label: 'Zone radius', title: 'Largest cache-zone radius in voxels', values: [1, 2, 4, 8, 16] },
+  ],
+};
+
+function optionText(/** @type {any} */ v) {
+  if (v === true) return 'on';
+  if (v === false) return 'off';
+  return String(v).replaceAll('_', ' ');
+}
+
+/** Shows the current technique's options as drop-downs; a change is sent at once. */
+function renderTechniqueOptions() {
+  const box = $('technique-options');
+  box.textContent = '';
+  const name = local.technique;
+  const controls = OPTION_CONTROLS[name];
+  if (!controls) return;
+  const info = /** @type {any} */ (vx.techniques.find((t) => t.name === name));
+  const defaults = info?.default_options?.[name] || {};
+  const set = local.techniqueOptions[name] || {};
+  for (const c of controls) {
+    const current = c.key in set ? set[c.key] : defaults[c.key];
+    const values = [...c.values];
+    if (current !== undefined && !values.includes(current)) values.push(current);
+    const row = document.createElement('label');
+    row.className = 'row';
+    row.title = c.title;
+    const span = document.createElement('span');
+    span.textContent = c.label;
+    const sel = document.createElement('select');
+    sel.dataset.option = c.key;
+    sel.setAttribute('aria-label', `${name} ${c.label}`);
+    values.forEach((v, i) => {
+      const o = document.createElement('option');
+      o.value = String(i);
+      o.textContent = optionText(v) + (v === defaults[c.key] ? ' (default)' : '');
+      sel.appendChild(o);
+    });
+    sel.value = String(Math.max(0, values.indexOf(current)));
+    sel.addEventListener('change', () => {
+      const value = values[Number(sel.value)];
+      const options = { [name]: { [c.key]: value } };
+      if (send('technique', { name, options })) overlayOptions(options);
+    });
+    row.append(span, sel);
+    box.appendChild(row);
+  }
 }
 
 /** @param {any} n */
@@ -1311,7 +1413,11 @@ function pushAll() {
   send('tf', { points: tfEditor.points });
   send('lights', { lights: buildLights() });
   send('params', { ...local.params });
-  if (local.technique && vx.welcome?.state?.technique !== local.technique) send('technique', { name: local.technique });
+  const options = local.techniqueOptions;
+  const hasOptions = Object.values(options).some((group) => group && Object.keys(group).length > 0);
+  if (local.technique && (vx.welcome?.state?.technique !== local.technique || hasOptions)) {
+    send('technique', hasOptions ? { name: local.technique, options } : { name: local.technique });
+  }
   if (vx.welcome?.state?.iterations !== local.iterations) send('quality', { jpeg_quality: local.jpeg_quality, iterations: local.iterations });
   $('technique').value = local.technique;
   showTechniqueDesc();

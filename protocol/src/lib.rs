@@ -1,11 +1,14 @@
 //! Every message on the voxlight wire, and the scene file format (which uses the same field
-//! names). Types only: no logic beyond serde attributes and defaults.
+//! names). Types only: no logic beyond serde attributes, defaults and overlaying options.
 //!
 //! Text messages are JSON objects tagged by `"type"`. Frames are binary messages: a 4-byte
 //! little-endian length `N`, then `N` bytes of UTF-8 JSON [`FrameMeta`], then the encoded image.
 //! `docs/protocol.md` documents all of it for client authors.
 
 use serde::{Deserialize, Serialize};
+
+mod options;
+pub use options::*;
 
 /// Version a client announces in `hello`; the server refuses others with `protocol_version`.
 pub const PROTOCOL_VERSION: u32 = 1;
@@ -167,6 +170,9 @@ pub enum ClientMessage {
         dataset: Option<String>,
         #[serde(default)]
         technique: Option<String>,
+        /// Options of the techniques for the new session (as in the `technique` message).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        technique_options: Option<TechniqueOptions>,
         /// Display name shown to the other viewers with this viewer's edits.
         #[serde(default)]
         name: Option<String>,
@@ -194,8 +200,12 @@ pub enum ClientMessage {
     Lights {
         lights: Vec<Light>,
     },
+    /// Switch technique, and/or change technique options: the fields `options` sets replace
+    /// the session's, the others keep their value.
     Technique {
         name: String,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        options: Option<TechniqueOptions>,
     },
     Viewport(Viewport),
     /// Change any of the render parameters; absent fields keep their value.
@@ -254,6 +264,10 @@ pub struct DatasetDetails {
 pub struct TechniqueInfo {
     pub name: String,
     pub description: String,
+    /// The technique's options with their default values (its group of `TechniqueOptions`;
+    /// empty for a technique without options).
+    #[serde(default, skip_serializing_if = "TechniqueOptions::is_empty")]
+    pub default_options: TechniqueOptions,
 }
 
 /// One person (connection) viewing a session.
@@ -269,6 +283,9 @@ pub struct ViewerInfo {
 pub struct SessionState {
     pub dataset: String,
     pub technique: String,
+    /// Options of every technique as set so far (absent fields: the technique's default).
+    #[serde(default, skip_serializing_if = "TechniqueOptions::is_empty")]
+    pub technique_options: TechniqueOptions,
     pub camera: Camera,
     pub tf: TransferFunction,
     pub lights: Vec<Light>,
@@ -503,6 +520,9 @@ pub struct Scene {
     pub lights: Vec<Light>,
     #[serde(default = "default_technique")]
     pub technique: String,
+    /// Options of the techniques (as in the `technique` message's `options`).
+    #[serde(default)]
+    pub technique_options: TechniqueOptions,
     #[serde(default = "default_density_scale")]
     pub density_scale: f32,
     #[serde(default)]
@@ -642,5 +662,47 @@ mod tests {
         assert_eq!(scene.technique, "raymarch");
         assert_eq!(scene.lights, default_lights());
         assert!(serde_json::from_str::<Scene>(r#"{"dataset":"x","colour":1}"#).is_err());
+    }
+
+    #[test]
+    fn technique_options_travel_by_name() {
+        let message: ClientMessage = serde_json::from_str(
+            r#"{"type":"technique","name":"manylight","options":{"manylight":{"virtual_lights":1000,"transmittance":"ray_marched"}}}"#,
+        )
+        .unwrap();
+        let ClientMessage::Technique { name, options } = &message else {
+            panic!("not a technique message: {message:?}");
+        };
+        assert_eq!(name, "manylight");
+        let options = options.expect("options");
+        assert_eq!(options.manylight.virtual_lights, Some(1000));
+        assert_eq!(
+            options.manylight.transmittance,
+            Some(Transmittance::RayMarched)
+        );
+        assert!(options.photon.is_empty() && options.irradiance.is_empty());
+        // Unset options are not written back, so an echo names only what was set.
+        let echoed = serde_json::to_string(&message).unwrap();
+        assert_eq!(
+            echoed,
+            r#"{"type":"technique","name":"manylight","options":{"manylight":{"virtual_lights":1000,"transmittance":"ray_marched"}}}"#
+        );
+        let plain: ClientMessage =
+            serde_json::from_str(r#"{"type":"technique","name":"raymarch"}"#).unwrap();
+        assert_eq!(
+            plain,
+            ClientMessage::Technique {
+                name: "raymarch".into(),
+                options: None
+            }
+        );
+        let typo = serde_json::from_str::<ClientMessage>(
+            r#"{"type":"technique","name":"irradiance","options":{"irradiance":{"lock":"screen"}}}"#,
+        );
+        assert!(
+            typo.unwrap_err()
+                .to_string()
+                .contains("unknown field `lock`")
+        );
     }
 }

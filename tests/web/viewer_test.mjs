@@ -223,7 +223,27 @@ async function main() {
       record('converges to a lossless frame', false, String(err.message || err).split('\n')[0]);
     }
 
-    // 6. No console errors, no uncaught exceptions, no `error` messages from the server.
+    // 6. Technique options: the panel shows the chosen technique's options with the server's
+    //    defaults; a change goes to the server as a `technique` message and the session keeps it.
+    try {
+      await page.selectOption('#technique', 'irradiance');
+      const locking = page.locator('#technique-options select[data-option="locking"]');
+      await locking.waitFor();
+      const shown = await page.$$eval('#technique-options select', (els) => els.map((e) => `${e.dataset.option}=${e.selectedOptions[0]?.textContent}`));
+      const screen = await locking.evaluate((el) => [...el.options].findIndex((o) => o.textContent.startsWith('screen')));
+      await locking.selectOption(String(screen));
+      await page.waitForFunction(() => window.voxlight.state?.technique_options?.irradiance?.locking === 'screen');
+      await page.waitForFunction(() => window.voxlight.lastShownMeta?.technique === 'irradiance');
+      const sent = await page.evaluate(() => window.voxlight.lastSent.technique);
+      const file = await shot('05-technique-options');
+      const ok = shown.includes('locking=object (default)') && sent?.name === 'irradiance' && sent?.options?.irradiance?.locking === 'screen';
+      record('technique options shown, sent and kept', ok, `${shown.join(', ')}; sent ${JSON.stringify(sent)}; ${file}`);
+    } catch (err) {
+      await shot('failure-options');
+      record('technique options shown, sent and kept', false, String(err.message || err).split('\n')[0]);
+    }
+
+    // 7. No console errors, no uncaught exceptions, no `error` messages from the server.
     const serverErrors = await page.evaluate(() => window.voxlight.errors);
     record(
       'no console errors or server error messages',

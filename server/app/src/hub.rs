@@ -42,6 +42,7 @@ impl SessionCore {
         SessionState {
             dataset: self.dataset.clone(),
             technique: self.technique.clone(),
+            technique_options: self.scene.technique_options,
             camera: self.scene.camera,
             tf: self.scene.tf.clone(),
             lights: self.scene.lights.clone(),

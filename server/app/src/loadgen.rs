@@ -35,6 +35,8 @@ pub struct LoadConfig {
     pub viewport: Viewport,
     pub dataset: Option<String>,
     pub technique: Option<String>,
+    /// Sent in every session's `hello`.
+    pub technique_options: Option<voxlight_protocol::TechniqueOptions>,
     pub token: Option<String>,
     /// Camera edits per second from each session's editor.
     pub edit_rate: f64,
@@ -235,6 +237,8 @@ async fn hello(
         viewport: Some(config.viewport),
         dataset: config.dataset.clone(),
         technique: config.technique.clone(),
+        // Ignored by the server when joining.
+        technique_options: config.technique_options,
         name: Some(name),
         max_in_flight: Some(WINDOW),
     };
@@ -482,6 +486,7 @@ mod tests {
             viewport: Viewport::default(),
             dataset: None,
             technique: None,
+            technique_options: None,
             token: None,
             edit_rate: 10.0,
             tf_interval: Duration::from_secs(2),

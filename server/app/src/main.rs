@@ -80,6 +80,10 @@ enum Command {
         dataset: Option<String>,
         #[arg(long)]
         technique: Option<String>,
+        /// Technique options as JSON, e.g. `{"manylight":{"virtual_lights":1000}}` (sent in
+        /// every session's `hello`; docs/protocol.md §4.5).
+        #[arg(long)]
+        technique_options: Option<String>,
         /// Sent as `Authorization: Bearer`.
         #[arg(long)]
         token: Option<String>,
@@ -251,12 +255,17 @@ fn run() -> anyhow::Result<()> {
             height,
             dataset,
             technique,
+            technique_options,
             token,
             edit_rate,
             tf_interval,
             background_sessions,
             json,
         } => {
+            let technique_options = technique_options
+                .map(|text| serde_json::from_str(&text))
+                .transpose()
+                .context("--technique-options is not valid technique options JSON")?;
             let config = loadgen::LoadConfig {
                 url,
                 sessions,
@@ -266,6 +275,7 @@ fn run() -> anyhow::Result<()> {
                 viewport: voxlight_protocol::Viewport { width, height },
                 dataset,
                 technique,
+                technique_options,
                 token,
                 edit_rate,
                 tf_interval: Duration::try_from_secs_f64(tf_interval)

@@ -48,6 +48,7 @@ pub fn engine_scene(file: &SceneFile, volume: &Volume) -> anyhow::Result<Scene> 
         },
         seed: file.seed,
         target_iterations: file.iterations.max(1),
+        technique_options: file.technique_options,
     };
     scene
         .validate()
@@ -167,5 +168,24 @@ mod tests {
         let bytes = std::fs::read(&path).unwrap();
         assert!(bytes.starts_with(b"PF\n3 2\n-1.0\n"));
         std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    #[test]
+    fn scene_files_carry_technique_options() {
+        let file: SceneFile = serde_json::from_str(
+            r#"{"dataset":"phantom:sphere","technique":"irradiance","width":16,"height":16,
+                "technique_options":{"irradiance":{"locking":"screen","max_radius_voxels":2}}}"#,
+        )
+        .unwrap();
+        let volume = open_dataset(&file.dataset, Path::new(".")).unwrap();
+        let scene = engine_scene(&file, &volume).unwrap();
+        let config = voxlight_engine::technique_options::irradiance_config(
+            &scene.technique_options.irradiance,
+        );
+        assert_eq!(
+            config.locking,
+            voxlight_engine::techniques::irradiance::Locking::Screen
+        );
+        assert_eq!(config.max_radius_voxels, 2.0);
     }
 }

@@ -342,6 +342,7 @@ async fn open_or_join(state: &Arc<AppState>, hello: ClientMessage) -> Result<Vie
         viewport,
         dataset,
         technique,
+        technique_options,
         name,
         max_in_flight,
         ..
@@ -388,6 +389,8 @@ async fn open_or_join(state: &Arc<AppState>, hello: ClientMessage) -> Result<Vie
     check_viewport(state, &viewport)?;
     let technique = technique.unwrap_or_else(|| "raymarch".to_owned());
     check_technique(state, &technique)?;
+    let technique_options = technique_options.unwrap_or_default();
+    voxlight_engine::technique_options::validate(&technique_options).map_err(Reply::bad)?;
     let dataset = dataset.unwrap_or_else(|| state.default_dataset.clone());
     let volume = load_dataset(state, &dataset).await?;
     let scene = Scene {
@@ -396,6 +399,7 @@ async fn open_or_join(state: &Arc<AppState>, hello: ClientMessage) -> Result<Vie
         params: RenderParams::default(),
         viewport,
         target_iterations: DEFAULT_ITERATIONS,
+        technique_options,
         ..Scene::default()
     };
     let render_id: SessionId = NEXT_SESSION.fetch_add(1, Ordering::Relaxed);
@@ -663,8 +667,13 @@ async fn handle_message(
                 }
             }
         }
-        ClientMessage::Technique { name } => {
+        ClientMessage::Technique { name, options } => {
             check_technique(state, &name)?;
+            if let Some(options) = &options {
+                scene.technique_options = scene.technique_options.overlaid(options);
+                voxlight_engine::technique_options::validate(&scene.technique_options)
+                    .map_err(Reply::bad)?;
+            }
             rebuild(
                 state,
                 session,
@@ -679,7 +688,7 @@ async fn handle_message(
             session.publish(ServerMessage::Edited {
                 by: viewer.clone(),
                 version: core.version,
-                edit: Box::new(ClientMessage::Technique { name }),
+                edit: Box::new(ClientMessage::Technique { name, options }),
             });
             return Ok(());
         }

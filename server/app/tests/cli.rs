@@ -72,6 +72,18 @@ fn bad_scene_files_fail_with_a_message() {
             Some(r#"{"dataset":"phantom:sphere","width":0}"#),
             "viewport",
         ),
+        (
+            "option.json",
+            Some(
+                r#"{"dataset":"phantom:sphere","technique":"photon","technique_options":{"photon":{"segments":99}}}"#,
+            ),
+            "photon.segments must be in [1, 32], got 99",
+        ),
+        (
+            "option_typo.json",
+            Some(r#"{"dataset":"phantom:sphere","technique_options":{"manylight":{"vls":10}}}"#),
+            "unknown field `vls`",
+        ),
     ];
     for (name, body, expected) in cases {
         let scene = dir.join(name);

@@ -12,6 +12,7 @@ pub mod scene;
 pub mod scene_gpu;
 pub mod shaders;
 pub mod technique;
+pub mod technique_options;
 pub mod techniques;
 pub mod tf;
 pub mod volume;
@@ -118,6 +119,7 @@ impl Engine {
             .map(|(name, description)| voxlight_protocol::TechniqueInfo {
                 name: (*name).to_owned(),
                 description: (*description).to_owned(),
+                default_options: technique_options::defaults_of(name),
             })
             .collect()
     }

@@ -6,7 +6,7 @@ use std::time::Duration;
 
 use crate::passes::tonemap::ToneParams;
 use crate::technique::{StepReport, Technique, TechniqueStats};
-use crate::techniques::photon::{Photon, PhotonParams};
+use crate::techniques::photon::Photon;
 use crate::techniques::progressive::{Estimator, Progressive, accum_bytes};
 use crate::{Change, Engine, EngineError, GpuVolume, Scene};
 
@@ -64,19 +64,19 @@ impl Renderer {
                 engine,
                 volume.clone(),
                 scene,
-                PhotonParams::default(),
+                crate::technique_options::photon_params(&scene.technique_options.photon),
             )?),
             "manylight" => Box::new(crate::techniques::manylight::Manylight::new(
                 engine,
                 volume.clone(),
                 scene,
-                Default::default(),
+                crate::technique_options::manylight_config(&scene.technique_options.manylight),
             )?),
             "irradiance" => Box::new(crate::techniques::irradiance::Irradiance::new(
                 engine,
                 volume.clone(),
                 scene,
-                Default::default(),
+                crate::technique_options::irradiance_config(&scene.technique_options.irradiance),
             )?),
             other => return Err(EngineError::UnknownTechnique(other.to_owned())),
         };

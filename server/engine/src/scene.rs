@@ -1,8 +1,8 @@
 //! What a session renders (the physical model of DESIGN.md) and how it changes.
 
 use voxlight_protocol::{
-    Camera, Light, MAX_LIGHTS, MAX_VIEWPORT_EDGE, RenderParams, TransferFunction, Viewport,
-    default_lights,
+    Camera, Light, MAX_LIGHTS, MAX_VIEWPORT_EDGE, RenderParams, TechniqueOptions, TransferFunction,
+    Viewport, default_lights,
 };
 
 use crate::camera::CameraBasis;
@@ -19,6 +19,8 @@ pub struct Scene {
     pub seed: u32,
     /// Progressive iterations after which the picture is converged.
     pub target_iterations: u32,
+    /// Settings of the techniques (read when a renderer is built).
+    pub technique_options: TechniqueOptions,
 }
 
 impl Default for Scene {
@@ -31,6 +33,7 @@ impl Default for Scene {
             viewport: Viewport::default(),
             seed: 0,
             target_iterations: 256,
+            technique_options: TechniqueOptions::default(),
         }
     }
 }
@@ -134,7 +137,8 @@ impl Scene {
         crate::tf::validate(&self.tf)?;
         validate_lights(&self.lights)?;
         validate_params(&self.params)?;
-        validate_viewport(&self.viewport)
+        validate_viewport(&self.viewport)?;
+        crate::technique_options::validate(&self.technique_options)
     }
 }
 

@@ -67,6 +67,7 @@ pub fn scene(
         },
         seed: 7,
         target_iterations: iterations,
+        ..Scene::default()
     }
 }
 
