@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use serde_json::json;
 use voxlight_engine::techniques::irradiance::{
-    Historygrams, Invalidation, Irradiance, IrradianceConfig, Locking,
+    Historygrams, Invalidation, Irradiance, IrradianceConfig, Locking, ViewEvent,
 };
 use voxlight_engine::{Change, Engine, GpuVolume, Scene, Technique};
 use voxlight_protocol::{Camera, Light, TfPoint, TransferFunction, Viewport};
@@ -157,13 +157,22 @@ fn dataset(data_dir: &Path, name: &str, max_dim: u32) -> anyhow::Result<voxlight
     Ok(volume)
 }
 
-fn plain(bounces: u32) -> IrradianceConfig {
+pub fn view_event_name(event: ViewEvent) -> &'static str {
+    match event {
+        ViewEvent::Marched => "marched",
+        ViewEvent::DeltaTracking => "tracked",
+    }
+}
+
+/// Plain MCVR with the same camera-ray estimator as the cache runs (`view_event`).
+fn plain(bounces: u32, view_event: ViewEvent) -> IrradianceConfig {
     IrradianceConfig {
         cache: false,
         priorities: false,
         // Without a cache every event would be path traced: one is the cheapest.
         view_picks: 1,
         bounces,
+        view_event,
         ..IrradianceConfig::default()
     }
 }
@@ -253,7 +262,8 @@ fn reference(
         seed: scene.seed ^ 0x5eed_0001,
         ..scene.clone()
     };
-    let mut technique = Irradiance::new(engine, Arc::clone(volume), &scene, plain(bounces))?;
+    let config = plain(bounces, IrradianceConfig::default().view_event);
+    let mut technique = Irradiance::new(engine, Arc::clone(volume), &scene, config)?;
     for _ in 0..spp {
         technique.frame(engine, &scene, true)?;
     }
@@ -379,6 +389,7 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
         .context("bench convergence needs ../shared/data (or --data)")?;
     let engine = Engine::new()?;
     let mut cases = Vec::new();
+    let mut controls = Vec::new();
     for name in options.datasets {
         let volume = dataset(data_dir, name, options.max_dim)?;
         let gpu_volume = engine.upload_volume(&volume)?;
@@ -415,7 +426,7 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
                 &engine,
                 Arc::clone(&gpu_volume),
                 &scene,
-                plain(options.bounces),
+                plain(options.bounces, options.config.view_event),
             )?;
             let mut techniques = variants
                 .iter()
@@ -430,6 +441,20 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
                     Irradiance::new(&engine, Arc::clone(&gpu_volume), &scene, config)
                 })
                 .collect::<Result<Vec<_>, _>>()?;
+            // A control: plain MCVR with the same priorities and no cache. Eq. 12 draws blocks by
+            // their samples' variance alone, so this separates what the priorities gain from
+            // what the cache gains.
+            let mut control = Irradiance::new(
+                &engine,
+                Arc::clone(&gpu_volume),
+                &scene,
+                IrradianceConfig {
+                    priorities: true,
+                    frame_time: Some(Duration::from_millis(1)),
+                    ..plain(options.bounces, options.config.view_event)
+                },
+            )?;
+            let mut control_run = Errors::default();
             let mut plain_run = Errors::default();
             let mut plain_times = Vec::new();
             let mut runs: Vec<Errors> = variants.iter().map(|_| Errors::default()).collect();
@@ -438,6 +463,8 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
             for _ in 0..options.frames {
                 let t = timed_frame(&engine, &mut baseline, &scene, &reference, &mut plain_run)?;
                 plain_times.push(t.0);
+                control.set_frame_time(Some(t.0));
+                timed_frame(&engine, &mut control, &scene, &reference, &mut control_run)?;
                 for (i, technique) in techniques.iter_mut().enumerate() {
                     technique.set_frame_time(Some(t.0));
                     let (elapsed, split) =
@@ -450,6 +477,20 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
             }
             let plain_errors = &plain_run.reference;
             let frame_time = median(plain_times.clone());
+            let control_ratio = mean_ratio(plain_errors, &control_run.reference);
+            eprintln!(
+                "{name}, {lights} light(s), plain MCVR with priorities (no cache): error ratio {control_ratio:.2} (the paper's estimate: {:.2}); {} vs {} image-equivalents",
+                mean_ratio(&plain_run.estimated, &control_run.estimated),
+                control.iteration(),
+                baseline.iteration(),
+            );
+            controls.push(json!({
+                "dataset": name,
+                "lights": lights,
+                "error_ratio": control_ratio,
+                "estimated_error_ratio": mean_ratio(&plain_run.estimated, &control_run.estimated),
+                "samples_per_pixel": control.iteration(),
+            }));
             let dump = |what: &str, picture: &[[f32; 3]]| -> anyhow::Result<()> {
                 match options.dump {
                     Some(dir) => {
@@ -552,8 +593,11 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
         "reference_spp": options.reference_spp,
         "bounces": options.bounces,
         "max_radius_voxels": options.config.max_radius_voxels,
+        "gamma": options.config.gamma,
+        "view_event": view_event_name(options.config.view_event),
         "cases": cases,
         "mean_error_ratio": mean,
+        "priorities_without_cache": controls,
         "mean_estimated_error_ratio": mean_estimated,
     }))
 }
@@ -625,7 +669,7 @@ pub fn tf_edit(options: &IrradianceTfEditBench) -> anyhow::Result<serde_json::Va
                 &engine,
                 Arc::clone(&gpu_volume),
                 &scene,
-                plain(config.bounces),
+                plain(config.bounces, config.view_event),
             )?;
             let (plain, plain_times) =
                 run_frames(&engine, &mut baseline, &scene, options.frames, &reference)?;

@@ -177,9 +177,18 @@ enum Command {
         /// (the technique's default when absent).
         #[arg(long)]
         max_radius: Option<f32>,
+        /// `convergence`, `tf-edit --technique irradiance`: γ, the accepted relative error of
+        /// an entry's estimate (the technique's default when absent).
+        #[arg(long)]
+        gamma: Option<f32>,
         /// `convergence`: write each case's pictures (PNG) to this folder.
         #[arg(long)]
         dump: Option<PathBuf>,
+        /// `convergence`, `tf-edit --technique irradiance`: how camera rays find their
+        /// scattering event, for plain MCVR and the cache alike: `marched` (picked along a
+        /// jittered march, the default) or `tracked` (delta tracking, as Exposure Render).
+        #[arg(long, default_value = "marched")]
+        view_event: String,
         /// `tf-edit --technique irradiance`: frames that build the cache before each edit.
         #[arg(long, default_value_t = 120)]
         build_frames: u32,
@@ -321,8 +330,22 @@ fn run() -> anyhow::Result<()> {
             historygrams,
             dump,
             max_radius,
+            gamma,
+            view_event,
         } => {
+            use voxlight_engine::techniques::irradiance::ViewEvent;
+            let view_event = match view_event.as_str() {
+                "marched" => ViewEvent::Marched,
+                "tracked" => ViewEvent::DeltaTracking,
+                other => {
+                    anyhow::bail!("--view-event must be `marched` or `tracked`, got `{other}`")
+                }
+            };
             let irradiance_config = voxlight_engine::techniques::irradiance::IrradianceConfig {
+                view_event,
+                gamma: gamma.unwrap_or(
+                    voxlight_engine::techniques::irradiance::IrradianceConfig::default().gamma,
+                ),
                 max_radius_voxels: max_radius.unwrap_or(
                     voxlight_engine::techniques::irradiance::IrradianceConfig::default()
                         .max_radius_voxels,
