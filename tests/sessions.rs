@@ -566,30 +566,12 @@ async fn technique_options_configure_the_session_and_reach_every_viewer() {
     assert_eq!(frame.meta.details.shadow_map_bytes, Some(4 * maps_8));
 
     // A bad edit is refused and changes nothing; the session goes on.
-    ada.send_json(json!({"type": "technique", "name": "manylight",
-        "options": {"manylight": {"vsl_radius": 3.0}}}))
-        .await
-        .unwrap();
-    let error = ada
-        .text_where(|m| matches!(m, ServerMessage::Error { .. }))
-        .await
-        .unwrap();
-    assert!(
-        matches!(&error, ServerMessage::Error { code: ErrorCode::BadValue, message } if message.contains("manylight.vsl_radius")),
-        "{error:?}"
-    );
-    ada.send_json(json!({"type": "technique", "name": "manylight",
-        "options": {"manylight": {"bogus": 1}}}))
-        .await
-        .unwrap();
-    let error = ada
-        .text_where(|m| matches!(m, ServerMessage::Error { .. }))
-        .await
-        .unwrap();
-    assert!(
-        matches!(&error, ServerMessage::Error { message, .. } if message.contains("bogus")),
-        "{error:?}"
-    );
+    let (code, message) = refused_options(&mut ada, json!({"vsl_radius": 3.0})).await;
+    assert_eq!(code, ErrorCode::BadValue);
+    assert!(message.contains("manylight.vsl_radius"), "{message}");
+    let (code, message) = refused_options(&mut ada, json!({"bogus": 1})).await;
+    assert_eq!(code, ErrorCode::BadMessage);
+    assert!(message.contains("bogus"), "{message}");
     ada.send_json(json!({"type": "technique", "name": "irradiance",
         "options": {"irradiance": {"locking": "screen", "priorities": false}}}))
         .await
@@ -602,4 +584,21 @@ async fn technique_options_configure_the_session_and_reach_every_viewer() {
     ada.close().await;
     bob.close().await;
     server.stop().await.unwrap();
+}
+
+/// Sends manylight `options` that the server must refuse; returns the error's code and text.
+async fn refused_options(client: &mut Client, options: serde_json::Value) -> (ErrorCode, String) {
+    client
+        .send_json(json!({"type": "technique", "name": "manylight",
+            "options": {"manylight": options}}))
+        .await
+        .unwrap();
+    match client
+        .text_where(|m| matches!(m, ServerMessage::Error { .. }))
+        .await
+        .unwrap()
+    {
+        ServerMessage::Error { code, message } => (code, message),
+        other => unreachable!("{other:?}"),
+    }
 }
