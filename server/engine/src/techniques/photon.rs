@@ -73,11 +73,12 @@ pub enum Invalidation {
 }
 
 impl Invalidation {
+    /// The protocol's name of this choice (`photon.invalidation`).
     pub fn name(self) -> &'static str {
         match self {
-            Invalidation::AnyPhoton => "any-photon",
-            Invalidation::SpatialHistogram => "spatial-3x64",
-            Invalidation::DirtyCells => "dirty-cells",
+            Invalidation::AnyPhoton => "any_photon",
+            Invalidation::SpatialHistogram => "spatial3x64",
+            Invalidation::DirtyCells => "dirty_cells",
         }
     }
 
