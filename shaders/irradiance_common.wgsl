@@ -119,6 +119,10 @@ const FLAG_SAMPLED_HISTORYGRAMS: u32 = 8u;
 // Camera rays pick their scattering event along a jittered march (march.wgsl) instead of
 // delta tracking it.
 const FLAG_MARCHED_VIEW: u32 = 16u;
+// The update also checks the entries holding its point against a fresh estimate there.
+const FLAG_VALIDATE_HITS: u32 = 32u;
+// Irradiance samples of that fresh estimate.
+const VALIDATION_SAMPLES: u32 = 8u;
 
 const REQUEST_PENDING: u32 = 0u;
 const REQUEST_DONE: u32 = 1u;

@@ -3,7 +3,9 @@
 // does, and evaluates every entry whose zone holds that point. While the predictions of two of
 // them differ by more than the update threshold, the entry with the lowest weight loses the
 // point: its radii in the point's octant shrink, each in proportion to the point's coordinate
-// along it (Fig. 6), until the point lies on its zone's edge. Rust twin:
+// along it (Fig. 6), until the point lies on its zone's edge. With FLAG_VALIDATE_HITS (beyond the
+// paper) the point's irradiance is first estimated afresh, and every entry predicting outside
+// that estimate's 95% interval (widened by the threshold) loses the point too. Rust twin:
 // server/engine/src/passes/irradiance.rs.
 
 // Shrinks entry e's radii in the octant of x so that x lies just outside its zone: r_i − s·|l_i|
@@ -97,6 +99,27 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
 
     let tolerance = log(1.0 + params.update_threshold);
+    if (n > 0u && (params.flags & FLAG_VALIDATE_HITS) != 0u) {
+        var sum = 0.0;
+        var sum_sq = 0.0;
+        for (var s = 0u; s < VALIDATION_SAMPLES; s++) {
+            let l = luminance(irradiance_sample(p, &rng));
+            sum += l;
+            sum_sq += l * l;
+        }
+        let k = f32(VALIDATION_SAMPLES);
+        let mean = sum / k;
+        let half_width = 1.96 * sqrt(max(0.0, (sum_sq - k * mean * mean) / (k - 1.0)) / k);
+        let high = log(max(mean + half_width, IRRADIANCE_FLOOR)) + tolerance;
+        let low = log(max(mean - half_width, IRRADIANCE_FLOOR)) - tolerance;
+        for (var i = 0u; i < n; i++) {
+            if (predictions[i] > high || predictions[i] < low) {
+                exclude_point(ids[i], p);
+                weights[i] = 0.0;
+                atomicAdd(&words[COUNTER_REDUCTIONS], 1u);
+            }
+        }
+    }
     for (var remaining = n; remaining >= 2u; remaining--) {
         var low = 1e30;
         var high = -1e30;

@@ -594,6 +594,7 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
         "bounces": options.bounces,
         "max_radius_voxels": options.config.max_radius_voxels,
         "gamma": options.config.gamma,
+        "validate_hits": options.config.validate_hits,
         "view_event": view_event_name(options.config.view_event),
         "cases": cases,
         "mean_error_ratio": mean,

@@ -189,6 +189,10 @@ enum Command {
         /// jittered march, the default) or `tracked` (delta tracking, as Exposure Render).
         #[arg(long, default_value = "marched")]
         view_event: String,
+        /// `convergence`, `tf-edit --technique irradiance`: the update also checks the entries
+        /// at its point against a fresh estimate there (beyond the paper).
+        #[arg(long)]
+        validate_hits: bool,
         /// `tf-edit --technique irradiance`: frames that build the cache before each edit.
         #[arg(long, default_value_t = 120)]
         build_frames: u32,
@@ -332,6 +336,7 @@ fn run() -> anyhow::Result<()> {
             max_radius,
             gamma,
             view_event,
+            validate_hits,
         } => {
             use voxlight_engine::techniques::irradiance::ViewEvent;
             let view_event = match view_event.as_str() {
@@ -343,6 +348,7 @@ fn run() -> anyhow::Result<()> {
             };
             let irradiance_config = voxlight_engine::techniques::irradiance::IrradianceConfig {
                 view_event,
+                validate_hits,
                 gamma: gamma.unwrap_or(
                     voxlight_engine::techniques::irradiance::IrradianceConfig::default().gamma,
                 ),

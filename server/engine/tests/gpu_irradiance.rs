@@ -522,6 +522,42 @@ fn the_update_shrinks_zones_where_entries_disagree() {
 }
 
 #[test]
+fn validating_hits_shrinks_zones_a_fresh_estimate_contradicts() {
+    // The same hard shadow edge: with validation the update also shrinks single entries that
+    // reach across it (no second entry needed), so more radii shrink under the same schedule.
+    let (_, volume) = sphere(40);
+    let s = scene(
+        ramp_tf(0.8),
+        vec![Light::Directional {
+            direction: [1.0, -0.2, -0.3],
+            irradiance: [4.0; 3],
+        }],
+        25.0,
+        48,
+        1000,
+    );
+    let engine = engine();
+    let reductions = |validate_hits: bool| {
+        let config = IrradianceConfig {
+            fixed_rounds: Some((4, 4)),
+            bounces: 1,
+            validate_hits,
+            ..Default::default()
+        };
+        let mut t = Irradiance::new(engine, volume.clone(), &s, config).unwrap();
+        for _ in 0..30 {
+            t.frame(engine, &s, true).unwrap();
+        }
+        t.cache_stats().radius_reductions
+    };
+    let (without, with) = (reductions(false), reductions(true));
+    assert!(
+        with > without,
+        "validated {with} reductions, pairwise alone {without}"
+    );
+}
+
+#[test]
 fn an_anisotropic_phase_function_renders_plain_monte_carlo() {
     let (_, volume) = sphere(32);
     let mut s = lit_sphere(32);

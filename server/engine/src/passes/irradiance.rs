@@ -121,6 +121,7 @@ pub const FLAG_SCREEN_LOCKING: u32 = 2;
 pub const FLAG_NO_CREATION: u32 = 4;
 pub const FLAG_SAMPLED_HISTORYGRAMS: u32 = 8;
 pub const FLAG_MARCHED_VIEW: u32 = 16;
+pub const FLAG_VALIDATE_HITS: u32 = 32;
 
 pub const COUNTER_HITS: usize = 0;
 pub const COUNTER_MISSES: usize = 1;

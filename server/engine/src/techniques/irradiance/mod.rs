@@ -37,8 +37,8 @@ use crate::passes::irradiance::{
     BLOCK_HEIGHT, BLOCK_WIDTH, COUNTER_CREATED, COUNTER_DROPPED, COUNTER_ENTRIES, COUNTER_HITS,
     COUNTER_ISSUED, COUNTER_LOST, COUNTER_MISSES, COUNTER_PENDING, COUNTER_REDUCTIONS,
     COUNTER_WORDS, CacheEntry, DISPATCH_STRIDE, DispatchInfo, FLAG_CACHE, FLAG_MARCHED_VIEW,
-    FLAG_NO_CREATION, FLAG_SAMPLED_HISTORYGRAMS, FLAG_SCREEN_LOCKING, IrradianceBindings,
-    IrradianceParams, PRIORITY_UNSAMPLED, Request, UPDATE_WORKGROUP,
+    FLAG_NO_CREATION, FLAG_SAMPLED_HISTORYGRAMS, FLAG_SCREEN_LOCKING, FLAG_VALIDATE_HITS,
+    IrradianceBindings, IrradianceParams, PRIORITY_UNSAMPLED, Request, UPDATE_WORKGROUP,
 };
 use crate::technique::{StepReport, Technique, TechniqueStats};
 use crate::techniques::progressive::{Estimator, Progressive, accum_bytes};
@@ -142,6 +142,11 @@ pub struct IrradianceConfig {
     /// systematic resampling along the march, cached ones cost a lookup each, and one of those
     /// the cache misses is path traced for all of them.
     pub view_picks: u32,
+    /// Beyond the paper: the update also estimates the irradiance afresh at its point and
+    /// shrinks every entry whose prediction there lies outside that estimate's 95% interval
+    /// widened by the update threshold (a shadow edge cast into a zone from outside it, which
+    /// the zone's own stencil cannot see; the paper's update only compares entries).
+    pub validate_hits: bool,
     /// How often the octree is rebuilt with the radii the update shrank.
     pub rebuild_interval: Duration,
     /// Time over which the hit rate is measured.
@@ -185,6 +190,7 @@ impl Default for IrradianceConfig {
             // More events make cached samples less noisy but cost a second march and a lookup
             // each; at the cache coverage reached on lavapipe that did not pay (benchmarks.md).
             view_picks: 1,
+            validate_hits: false,
             rebuild_interval: Duration::from_millis(1000),
             hit_rate_window: Duration::from_millis(100),
             fixed_rounds: None,
@@ -771,6 +777,9 @@ impl Irradiance {
         }
         if self.config.view_event == ViewEvent::Marched {
             flags |= FLAG_MARCHED_VIEW;
+        }
+        if self.config.validate_hits {
+            flags |= FLAG_VALIDATE_HITS;
         }
         let refs_offset = 4 * self.octree.node_count() as u32;
         let params = IrradianceParams {
