@@ -21,7 +21,7 @@ pub const ALL: &[(&str, &str)] = &[
     ),
     (
         "irradiance",
-        "Monte-Carlo volume rendering whose first scattering event reads a parallel irradiance cache built while rendering (Khlebnikov et al. 2014), with multiple scattering; TF edits keep the entries they cannot change (isotropic phase function)",
+        "Monte-Carlo volume rendering whose first scattering event reads a parallel irradiance cache built while rendering (Khlebnikov et al. 2014), with multiple scattering; TF edits keep the entries they cannot change (isotropic phase function; zones can carry a shadow edge a few voxels: slightly biased there)",
     ),
     (
         "photon",
