@@ -443,11 +443,7 @@ async fn technique_details_reach_stats_and_frames() {
     let mut hello = hello(32, "Ada");
     hello["technique"] = "manylight".into();
     client.hello_with(hello).await.unwrap();
-    client
-        .send_json(json!({"type": "quality", "iterations": 2}))
-        .await
-        .unwrap();
-    let frame = client.frame_where(|f| f.meta.converged).await.unwrap();
+    let frame = converged_after(&mut client, 2).await;
     assert_eq!(frame.meta.technique, "manylight");
     let lights = frame.meta.details.virtual_lights.unwrap_or(0);
     assert!(lights > 0, "{:?}", frame.meta.details);
@@ -472,11 +468,7 @@ async fn irradiance_sessions_report_their_cache() {
     let mut hello = hello(32, "Ada");
     hello["technique"] = "irradiance".into();
     client.hello_with(hello).await.unwrap();
-    client
-        .send_json(json!({"type": "quality", "iterations": 24}))
-        .await
-        .unwrap();
-    let frame = client.frame_where(|f| f.meta.converged).await.unwrap();
+    let frame = converged_after(&mut client, 24).await;
     assert_eq!(frame.meta.technique, "irradiance");
     let details = &frame.meta.details;
     assert_eq!(details.cache_active, Some(true), "{details:?}");
@@ -518,10 +510,7 @@ async fn technique_options_configure_the_session_and_reach_every_viewer() {
         panic!("expected welcome, got {welcome:?}");
     };
     assert_eq!(state.technique_options.manylight.virtual_lights, Some(24));
-    ada.send_json(json!({"type": "quality", "iterations": 2}))
-        .await
-        .unwrap();
-    let frame = ada.frame_where(|f| f.meta.converged).await.unwrap();
+    let frame = converged_after(&mut ada, 2).await;
     // Whole light paths are kept while they fit: at most the 24 asked for.
     let lights = frame.meta.details.virtual_lights.unwrap_or(0);
     assert!((12..=24).contains(&lights), "{:?}", frame.meta.details);
@@ -601,4 +590,13 @@ async fn refused_options(client: &mut Client, options: serde_json::Value) -> (Er
         ServerMessage::Error { code, message } => (code, message),
         other => unreachable!("{other:?}"),
     }
+}
+
+/// Asks for `iterations` and waits for the converged frame.
+async fn converged_after(client: &mut Client, iterations: u32) -> DecodedFrame {
+    client
+        .send_json(json!({"type": "quality", "iterations": iterations}))
+        .await
+        .unwrap();
+    client.frame_where(|f| f.meta.converged).await.unwrap()
 }

@@ -100,7 +100,24 @@ pub(crate) struct Edit {
     pub tf: TransferFunction,
 }
 
-fn tf_point(value: f32, color: [f32; 3], opacity: f32) -> TfPoint {
+/// The engine CT's two materials (histogram of engine.vti): the block around v ≈ 0.5–0.63 and
+/// the dense parts above 0.75; below 0.4 is air and partial volume.
+pub(crate) fn engine_tf() -> TransferFunction {
+    TransferFunction {
+        points: vec![
+            tf_point(0.0, [0.0; 3], 0.0),
+            tf_point(0.45, [0.6, 0.65, 0.75], 0.0),
+            tf_point(0.50, [0.6, 0.65, 0.75], 0.25),
+            tf_point(0.62, [0.6, 0.65, 0.75], 0.25),
+            tf_point(0.68, [0.6, 0.65, 0.75], 0.0),
+            tf_point(0.72, [0.9, 0.55, 0.25], 0.0),
+            tf_point(0.78, [0.9, 0.55, 0.25], 1.0),
+            tf_point(1.0, [0.9, 0.55, 0.25], 1.0),
+        ],
+    }
+}
+
+pub(crate) fn tf_point(value: f32, color: [f32; 3], opacity: f32) -> TfPoint {
     TfPoint {
         value,
         color,
@@ -238,20 +255,7 @@ pub(crate) fn tf_edit_scenarios(options: &TfEditBench) -> anyhow::Result<Vec<Sce
             .downsampled(options.max_dim);
         volume.name = rel.to_owned();
         let (tf, edits) = if name == "engine" {
-            // Two materials (histogram of engine.vti): the block around v ≈ 0.5–0.63 and the
-            // dense parts above 0.75; below 0.4 is air and partial volume.
-            let tf = TransferFunction {
-                points: vec![
-                    tf_point(0.0, [0.0; 3], 0.0),
-                    tf_point(0.45, [0.6, 0.65, 0.75], 0.0),
-                    tf_point(0.50, [0.6, 0.65, 0.75], 0.25),
-                    tf_point(0.62, [0.6, 0.65, 0.75], 0.25),
-                    tf_point(0.68, [0.6, 0.65, 0.75], 0.0),
-                    tf_point(0.72, [0.9, 0.55, 0.25], 0.0),
-                    tf_point(0.78, [0.9, 0.55, 0.25], 1.0),
-                    tf_point(1.0, [0.9, 0.55, 0.25], 1.0),
-                ],
-            };
+            let tf = engine_tf();
             let edits = edits_for(&tf, 6..8, 6..8, 2..4);
             (tf, edits)
         } else {

@@ -16,7 +16,7 @@ use voxlight_engine::techniques::irradiance::{
     Historygrams, Invalidation, Irradiance, IrradianceConfig, Locking, ViewEvent,
 };
 use voxlight_engine::{Change, Engine, GpuVolume, Scene, Technique};
-use voxlight_protocol::{Camera, Light, TfPoint, TransferFunction, Viewport};
+use voxlight_protocol::{Camera, Light, TransferFunction, Viewport};
 
 /// Options of `bench convergence`.
 pub struct ConvergenceBench<'a> {
@@ -324,11 +324,7 @@ fn mean_ratio(numerator: &[f64], denominator: &[f64]) -> f64 {
 /// background noise (values below 0.22, most of the volume), the engine's two materials, the
 /// chest CT's soft tissue and bone (the viewer's default).
 fn bench_tf(name: &str, volume: &voxlight_volumes::Volume) -> TransferFunction {
-    let point = |value: f32, color: [f32; 3], opacity: f32| TfPoint {
-        value,
-        color,
-        opacity,
-    };
+    use crate::bench::tf_point as point;
     match name {
         "bonsai" => TransferFunction {
             points: vec![
@@ -340,18 +336,7 @@ fn bench_tf(name: &str, volume: &voxlight_volumes::Volume) -> TransferFunction {
                 point(1.0, [0.8, 0.45, 0.3], 1.0),
             ],
         },
-        "engine" => TransferFunction {
-            points: vec![
-                point(0.0, [0.0; 3], 0.0),
-                point(0.45, [0.6, 0.65, 0.75], 0.0),
-                point(0.50, [0.6, 0.65, 0.75], 0.25),
-                point(0.62, [0.6, 0.65, 0.75], 0.25),
-                point(0.68, [0.6, 0.65, 0.75], 0.0),
-                point(0.72, [0.9, 0.55, 0.25], 0.0),
-                point(0.78, [0.9, 0.55, 0.25], 1.0),
-                point(1.0, [0.9, 0.55, 0.25], 1.0),
-            ],
-        },
+        "engine" => crate::bench::engine_tf(),
         _ => crate::datasets::default_tf(volume),
     }
 }

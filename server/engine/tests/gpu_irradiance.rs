@@ -465,10 +465,8 @@ fn a_fixed_schedule_repeats_bit_for_bit() {
     assert!(runs[0].0 == runs[1].0, "pictures differ");
 }
 
-#[test]
-fn the_update_shrinks_zones_where_entries_disagree() {
-    // A hard shadow edge (directional light only, no environment): entries on either side of
-    // it disagree where their zones overlap.
+/// The 40³ sphere lit by one directional light only (no environment): a hard shadow edge.
+fn shadow_edge_scene() -> (Arc<GpuVolume>, Scene) {
     let (_, volume) = sphere(40);
     let s = scene(
         ramp_tf(0.8),
@@ -480,6 +478,14 @@ fn the_update_shrinks_zones_where_entries_disagree() {
         48,
         1000,
     );
+    (volume, s)
+}
+
+#[test]
+fn the_update_shrinks_zones_where_entries_disagree() {
+    // A hard shadow edge (directional light only, no environment): entries on either side of
+    // it disagree where their zones overlap.
+    let (volume, s) = shadow_edge_scene();
     let config = IrradianceConfig {
         fixed_rounds: Some((4, 4)),
         bounces: 1,
@@ -525,17 +531,7 @@ fn the_update_shrinks_zones_where_entries_disagree() {
 fn validating_hits_shrinks_zones_a_fresh_estimate_contradicts() {
     // The same hard shadow edge: with validation the update also shrinks single entries that
     // reach across it (no second entry needed), so more radii shrink under the same schedule.
-    let (_, volume) = sphere(40);
-    let s = scene(
-        ramp_tf(0.8),
-        vec![Light::Directional {
-            direction: [1.0, -0.2, -0.3],
-            irradiance: [4.0; 3],
-        }],
-        25.0,
-        48,
-        1000,
-    );
+    let (volume, s) = shadow_edge_scene();
     let engine = engine();
     let reductions = |validate_hits: bool| {
         let config = IrradianceConfig {
