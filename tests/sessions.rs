@@ -219,7 +219,13 @@ async fn a_stalled_viewer_holds_at_most_its_window_and_does_not_slow_the_others(
         "after acknowledging {last} the stalled viewer should skip to the newest frame, got {}",
         next.meta.seq
     );
-    assert!(server.metric("voxlight_frames_skipped_total ").await > 10.0);
+    // The frames this viewer skipped are counted by the time it holds the next one.
+    let skipped = (next.meta.seq - last - 1) as f64;
+    let counted = server.metric("voxlight_frames_skipped_total ").await;
+    assert!(
+        counted >= skipped,
+        "the stalled viewer skipped {skipped} frames, the metric counts {counted}"
+    );
     deaf.drop_connection();
     stalled.close().await;
     active.close().await;

@@ -905,17 +905,18 @@ async fn write_loop(
                         continue;
                     }
                 };
-                let started = Instant::now();
-                if !send(&mut sink, Message::Binary(encoded.bytes.clone())).await {
-                    break;
-                }
-                let now = Instant::now();
+                // Counted before the send: a viewer that has the frame must find it counted.
                 if pacing.last_seq > 0 {
                     let skipped = rendered.frame_number - pacing.last_seq - 1;
                     pacing.skipped += skipped;
                     metrics.frames_skipped.fetch_add(skipped, Ordering::Relaxed);
                 }
                 pacing.last_seq = rendered.frame_number;
+                let started = Instant::now();
+                if !send(&mut sink, Message::Binary(encoded.bytes.clone())).await {
+                    break;
+                }
+                let now = Instant::now();
                 match pacing.window {
                     Some(_) => {
                         pacing.in_flight.push_back((rendered.frame_number, started));
