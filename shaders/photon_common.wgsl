@@ -150,6 +150,8 @@ const SPATIAL_CELLS: u32 = 2u;
 @group(0) @binding(12) var<storage, read_write> gather_list: array<u32>;
 // Where an unfinished segment's gather stands, by segment.
 @group(0) @binding(13) var<storage, read_write> gather_state: array<GatherState>;
+// The paths an update retraces (COUNTER_RETRACED of them), listed by `trace_mark`.
+@group(0) @binding(14) var<storage, read_write> retrace_list: array<u32>;
 
 // Linear invocation index of a 1D problem dispatched as a 2D grid of 64-wide workgroups.
 fn linear_index(gid: vec3<u32>, groups: vec3<u32>) -> u32 {

@@ -9,7 +9,10 @@
 // scattering that starts it draw from rng_new(seed, path, k) only, and the state it starts
 // from (position, direction, power, historygram) is exactly what record k − 1 stores. So
 // MODE_UPDATE can restart a path at its last record whose historygram misses the query and
-// produce bit for bit the path a full trace (MODE_FULL) would.
+// produce bit for bit the path a full trace (MODE_FULL) would. In MODE_UPDATE, `trace_mark`
+// first lists the paths the edit affects, and `main` runs one invocation per listed path: a
+// sparse update then keeps every SIMD lane busy instead of paying for whole batches whose
+// one affected path runs while the others idle.
 // Rust twin: server/engine/src/passes/photon.rs.
 
 // Marks the spatial historygram (3×64 bits) at world position p and, for SPATIAL_CELLS, the
@@ -112,13 +115,29 @@ fn emit(rng: ptr<function, Rng>) -> Emission {
     return Emission(origin, dir, e.power);
 }
 
+// MODE_UPDATE: lists every path of the map whose historygram meets the query.
+@compute @workgroup_size(64)
+fn trace_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let p = linear_index(gid, groups);
+    if (p >= photon.path_count) {
+        return;
+    }
+    let path = paths[p];
+    if (hist_hits_query(path.end_lo, path.end_hi)) {
+        retrace_list[atomicAdd(&counters[COUNTER_RETRACED], 1u)] = p;
+    }
+}
+
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let i = linear_index(gid, groups);
     if (i >= photon.dispatch_paths) {
         return;
     }
-    let p = photon.path_offset + i;
+    var p = photon.path_offset + i;
+    if (photon.mode == MODE_UPDATE) {
+        p = retrace_list[i];
+    }
     let bounces = photon.bounces;
     let base = p * bounces;
 
@@ -126,9 +145,6 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     var old_count = 0u;
     if (photon.mode == MODE_UPDATE) {
         let path = paths[p];
-        if (!hist_hits_query(path.end_lo, path.end_hi)) {
-            return;
-        }
         old_count = path.count;
         // Walk back to the last interaction the edit did not affect.
         var j = i32(path.count) - 1;
@@ -140,7 +156,6 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
             j -= 1;
         }
         start = j;
-        atomicAdd(&counters[COUNTER_RETRACED], 1u);
     }
 
     var position = vec3<f32>(0.0);

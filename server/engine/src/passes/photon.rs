@@ -1,5 +1,5 @@
 //! The passes of technique `photon` (shaders/photon_*.wgsl): photon tracing
-//! (`photon_trace.wgsl`), the hash-grid build (`photon_grid.wgsl`: clear, count, scan, scatter,
+//! (`photon_trace.wgsl`: mark the paths an update retraces, trace), the hash-grid build (`photon_grid.wgsl`: clear, count, scan, scatter,
 //! sort) and gathering + compositing (`photon_gather.wgsl`: mark, gather in rounds, composite). All share one binding layout
 //! (declared once in `photon_common.wgsl`) and the `#[repr(C)]` records below.
 
@@ -124,6 +124,7 @@ pub const WORKGROUP: u32 = 64;
 
 pub struct PhotonPass {
     pub layout: wgpu::BindGroupLayout,
+    pub trace_mark: wgpu::ComputePipeline,
     pub trace: wgpu::ComputePipeline,
     pub grid_clear: wgpu::ComputePipeline,
     pub grid_count: wgpu::ComputePipeline,
@@ -149,6 +150,7 @@ pub struct PhotonBindings<'a> {
     pub segments: &'a wgpu::Buffer,
     pub gather_list: &'a wgpu::Buffer,
     pub gather_state: &'a wgpu::Buffer,
+    pub retrace_list: &'a wgpu::Buffer,
     pub accum: &'a wgpu::Buffer,
     pub counters: &'a wgpu::Buffer,
 }
@@ -173,6 +175,7 @@ impl PhotonPass {
                 storage_entry(11, false),
                 storage_entry(12, false),
                 storage_entry(13, false),
+                storage_entry(14, false),
             ],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -200,6 +203,7 @@ impl PhotonPass {
             })
         };
         Self {
+            trace_mark: pipeline("photon trace mark", &trace, "trace_mark"),
             trace: pipeline("photon trace", &trace, "main"),
             grid_clear: pipeline("photon grid clear", &grid, "grid_clear"),
             grid_count: pipeline("photon grid count", &grid, "grid_count"),
@@ -228,6 +232,7 @@ impl PhotonPass {
             (11, b.counters),
             (12, b.gather_list),
             (13, b.gather_state),
+            (14, b.retrace_list),
         ];
         let mut entries: Vec<wgpu::BindGroupEntry> = buffers
             .iter()

@@ -176,6 +176,8 @@ pub struct PhotonBudget {
     pub gather_list_bytes: u64,
     /// Where each unfinished segment's gather stands between rounds.
     pub gather_state_bytes: u64,
+    /// The paths an update retraces (indices), compacted by `trace_mark`.
+    pub retrace_list_bytes: u64,
     pub accum_bytes: u64,
     /// Counters plus one dirty bit per grid cell.
     pub counter_bytes: u64,
@@ -228,6 +230,7 @@ impl PhotonBudget {
         // Two halves: a round's input and the segments left for the next.
         let gather_list_bytes = 2 * pixels * params.segments as u64 * 4;
         let gather_state_bytes = pixels * params.segments as u64 * size_of::<GatherState>() as u64;
+        let retrace_list_bytes = paths * 4;
         let accum_bytes = pixels * 16;
         // The dirty-cell bits are of half-size cells: 8 per hash cell.
         let counter_bytes = (COUNTER_WORDS as u64 + (8 * cells).div_ceil(32)) * 4;
@@ -243,6 +246,7 @@ impl PhotonBudget {
             + segment_bytes
             + gather_list_bytes
             + gather_state_bytes
+            + retrace_list_bytes
             + accum_bytes
             + small;
         Ok(Self {
@@ -258,6 +262,7 @@ impl PhotonBudget {
             segment_bytes,
             gather_list_bytes,
             gather_state_bytes,
+            retrace_list_bytes,
             accum_bytes,
             counter_bytes,
             total,
@@ -278,6 +283,7 @@ impl PhotonBudget {
             self.segment_bytes,
             self.gather_list_bytes,
             self.gather_state_bytes,
+            self.retrace_list_bytes,
             self.accum_bytes,
             self.counter_bytes,
         ]
@@ -390,6 +396,7 @@ impl Photon {
         // Only the shaders use it; the bind group keeps it alive.
         let gather_list = buffer("photon gather list", budget.gather_list_bytes, U::STORAGE);
         let gather_state = buffer("photon gather state", budget.gather_state_bytes, U::STORAGE);
+        let retrace_list = buffer("photon retrace list", budget.retrace_list_bytes, U::STORAGE);
         let accum = buffer("photon accum", budget.accum_bytes, U::STORAGE | U::COPY_SRC);
         let counters = buffer(
             "photon counters",
@@ -411,6 +418,7 @@ impl Photon {
                 segments: &segments,
                 gather_list: &gather_list,
                 gather_state: &gather_state,
+                retrace_list: &retrace_list,
                 accum: &accum,
                 counters: &counters,
             },
@@ -571,8 +579,9 @@ impl Photon {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) })
     }
 
-    /// Traces paths [offset, offset + count) (MODE_FULL) or checks and retraces every path in
-    /// the map (MODE_UPDATE), in its own submission (the uniforms differ from the gather's).
+    /// Traces paths [offset, offset + count) (MODE_FULL) or retraces the first `count` paths
+    /// of the retrace list (MODE_UPDATE), in its own submission (the uniforms differ from the
+    /// gather's).
     fn trace(
         &self,
         engine: &Engine,
@@ -725,6 +734,28 @@ impl Photon {
         Ok(())
     }
 
+    /// Lists the paths whose historygram meets the query (`trace_mark`) and returns how many
+    /// (blocks on the GPU): the retrace then runs on them alone.
+    fn list_retraced(
+        &self,
+        engine: &Engine,
+        scene: &Scene,
+        paths: u32,
+        query: Query,
+    ) -> Result<u32, EngineError> {
+        self.write_uniforms(engine, scene, MODE_UPDATE, 0..0, query, Round::default());
+        let mut encoder = Self::encoder(engine, "photon trace mark");
+        dispatch_linear(
+            &mut encoder,
+            "photon trace mark",
+            &engine.photon.trace_mark,
+            &self.bind_group,
+            paths,
+        );
+        engine.gpu.queue.submit([encoder.finish()]);
+        self.counter(engine, COUNTER_RETRACED)
+    }
+
     /// The most photons in one hash cell of the grid just built, and how many segments the
     /// gather will compute (blocks on the GPU).
     fn fullest_cell_and_listed(&self, engine: &Engine) -> Result<(u32, u32), EngineError> {
@@ -835,7 +866,8 @@ impl Photon {
             &vec![0u8; self.budget.counter_bytes as usize],
         );
         self.write_scene(engine, scene)?;
-        self.trace(engine, scene, MODE_UPDATE, 0, paths, query);
+        let listed = self.list_retraced(engine, scene, paths, query)?;
+        self.trace(engine, scene, MODE_UPDATE, 0, listed, query);
         self.grid_and_gather(engine, scene, MODE_UPDATE, query)?;
         let bytes = engine.gpu.read_buffer(&self.counters)?;
         let words: &[u32] = bytemuck::try_cast_slice(&bytes)
