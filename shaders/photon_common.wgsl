@@ -46,9 +46,12 @@ struct PhotonUniforms {
     // directly; colour reaches it only through the photons.
     opacity_query_lo: u32,
     opacity_query_hi: u32,
-    pad0: u32,
-    pad1: u32,
-    pad2: u32,
+    // Which grid the grid kernels build: GRID_RECORDS or GRID_CHANGES.
+    grid_pass: u32,
+    // Entries the change list holds.
+    change_capacity: u32,
+    // Records the map holds; the change grid's slots start there in grid_sorted.
+    record_capacity: u32,
 }
 
 // A stored photon interaction (a real collision): where, the direction it arrived from (travel
@@ -82,13 +85,24 @@ struct PhotonEmitter {
     cdf: f32,
 }
 
-// A segment's gather between rounds: the current sample's photon sum so far (partial), its
-// lattice index k, the segment's radiance, transmittance and historygram so far, and the place
-// in the 27-cell neighbourhood (cell, see photon_gather.wgsl; rank within that cell).
+// A photon record that an update replaced (negative = 1: its old version, to subtract) or
+// wrote (negative = 0: its new version, to add); the change grid indexes them.
+struct PhotonChange {
+    position: vec3<f32>,
+    cell: u32,
+    power: vec3<f32>,
+    negative: u32,
+    direction: vec3<f32>,
+    pad0: u32,
+}
+
+// A segment's gather between rounds: its radiance so far (fixed point, see fixed_hi), the
+// current sample's lattice index k, the transmittance and historygram so far, and the place in
+// the 27-cell neighbourhood (cell, see photon_gather.wgsl; rank within that cell).
 struct GatherState {
-    partial: vec3<f32>,
+    color_lo: vec3<u32>,
     k: f32,
-    color: vec3<f32>,
+    color_hi: vec3<u32>,
     transmit: f32,
     hist_lo: u32,
     hist_hi: u32,
@@ -96,15 +110,18 @@ struct GatherState {
     rank: u32,
 }
 
-// One view-ray segment: in-scattered radiance (rgb, transmittance inside the segment starts at
-// 1), the segment's transmittance and the historygram of its samples' data values.
+// One view-ray segment: in-scattered radiance (rgb, 64-bit fixed point as lo/hi words;
+// transmittance inside the segment starts at 1), the segment's transmittance and the
+// historygram of its samples' data values.
 struct Segment {
-    color: vec3<f32>,
+    color_lo: vec3<u32>,
     transmittance: f32,
+    color_hi: vec3<u32>,
     hist_lo: u32,
     hist_hi: u32,
     pad0: u32,
     pad1: u32,
+    pad2: u32,
 }
 
 const MODE_FULL: u32 = 0u;
@@ -125,8 +142,16 @@ const COUNTER_SPATIAL: u32 = 3u;
 const COUNTER_MAX_CELL: u32 = 9u;
 // Segments in the two halves of gather_list (two words).
 const COUNTER_LIST: u32 = 10u;
+// Entries an update appended to the change list (more than change_capacity: it overflowed).
+const COUNTER_CHANGES: u32 = 12u;
+// Segments an update recomputed from the change grid alone (DELTA_SEGMENT).
+const COUNTER_DELTA: u32 = 13u;
 // Dirty-cell bits (SPATIAL_CELLS) follow the counters.
-const COUNTER_DIRTY: u32 = 12u;
+const COUNTER_DIRTY: u32 = 14u;
+const GRID_RECORDS: u32 = 0u;
+const GRID_CHANGES: u32 = 1u;
+// A gather_list entry with this bit updates its segment by the change grid's photons only.
+const DELTA_SEGMENT: u32 = 0x80000000u;
 const SPATIAL_NONE: u32 = 0u;
 const SPATIAL_AXES: u32 = 1u;
 const SPATIAL_CELLS: u32 = 2u;
@@ -138,8 +163,11 @@ const SPATIAL_CELLS: u32 = 2u;
 @group(0) @binding(4) var<storage, read> emitters: array<PhotonEmitter>;
 @group(0) @binding(5) var<storage, read_write> records: array<PhotonRecord>;
 @group(0) @binding(6) var<storage, read_write> paths: array<PhotonPath>;
-// [0, cell_count]: first sorted slot of each cell (exclusive prefix sum, total at the end);
-// [cell_count + 1, 2·cell_count + 1): per-cell counters and scatter cursors.
+// Two grids, each over the same cells: the records' at grid_base(GRID_RECORDS), the change
+// list's at grid_base(GRID_CHANGES). In each, [0, cell_count]: first slot of each cell
+// (exclusive prefix sum, total at the end); [cell_count + 1, 2·cell_count + 1): per-cell
+// counters and scatter cursors. grid_sorted holds the records' slots, then from
+// record_capacity on the changes'.
 @group(0) @binding(7) var<storage, read_write> grid_cells: array<atomic<u32>>;
 @group(0) @binding(8) var<storage, read_write> grid_sorted: array<u32>;
 @group(0) @binding(9) var<storage, read_write> segments: array<Segment>;
@@ -152,6 +180,36 @@ const SPATIAL_CELLS: u32 = 2u;
 @group(0) @binding(13) var<storage, read_write> gather_state: array<GatherState>;
 // The paths an update retraces (COUNTER_RETRACED of them), listed by `trace_mark`.
 @group(0) @binding(14) var<storage, read_write> retrace_list: array<u32>;
+// The records an update changed, old and new versions (COUNTER_CHANGES of them).
+@group(0) @binding(15) var<storage, read_write> changes: array<PhotonChange>;
+
+fn grid_base(grid: u32) -> u32 {
+    return select(0u, 2u * photon.cell_count + 1u, grid == GRID_CHANGES);
+}
+
+fn sorted_base(grid: u32) -> u32 {
+    return select(0u, photon.record_capacity, grid == GRID_CHANGES);
+}
+
+// Radiance sums are 64-bit fixed point with 40 fraction bits, per channel (lo, hi words): an
+// integer sum does not depend on the order of its terms, so the grid needs no sort, and an
+// update can subtract a changed photon's old contribution and add its new one and land on the
+// bits a full gather forms. A term x arrives already scaled by 2^40 (FIXED_ONE) and is
+// truncated to an integer: its high word, then its low word.
+const FIXED_ONE: f32 = 1099511627776.0;
+
+fn fixed_hi(x: vec3<f32>) -> vec3<u32> {
+    return vec3<u32>(x * (1.0 / 4294967296.0));
+}
+
+// Exact: above 2^32 an f32 is a multiple of 2^9, and so is its remainder below 2^32.
+fn fixed_lo(x: vec3<f32>, hi: vec3<u32>) -> vec3<u32> {
+    return vec3<u32>(x - vec3<f32>(hi) * 4294967296.0);
+}
+
+fn fixed_to_f32(lo: vec3<u32>, hi: vec3<u32>) -> vec3<f32> {
+    return (vec3<f32>(hi) + vec3<f32>(lo) * (1.0 / 4294967296.0)) * (1.0 / 256.0);
+}
 
 // Linear invocation index of a 1D problem dispatched as a 2D grid of 64-wide workgroups.
 fn linear_index(gid: vec3<u32>, groups: vec3<u32>) -> u32 {

@@ -3,17 +3,20 @@
 // lattice per pixel) is cut into `segments` equal pieces of its box interval; each segment
 // marches its own samples with transmittance starting at 1 and stores the in-scattered
 // radiance (an Epanechnikov density estimate of the photons within `radius`, from the
-// 27-cell neighbourhood, in record order), its transmittance and the historygram of its
-// samples' data values. `gather_mark` lists the segments to compute: all in MODE_FULL; in
-// MODE_UPDATE those whose historygram meets the opacity query (a colour edit reaches a segment
-// only through photons) or that a changed photon can reach (spatial historygram; without it,
-// any changed photon). Listing them keeps every SIMD lane of
-// the gather busy (a sparse update would otherwise pay for whole idle batches).
+// 27-cell neighbourhood, summed in fixed point: fixed_hi), its transmittance and the
+// historygram of its samples' data values. `gather_mark` lists the segments to compute: all in
+// MODE_FULL; in MODE_UPDATE those whose historygram meets the opacity query, gathered afresh,
+// and those that a changed photon can reach (dirty cells, the spatial historygram, or any
+// changed photon), whose samples and weights are as before: they are updated by the change
+// grid alone (DELTA_SEGMENT), each changed record's old term subtracted and its new one added,
+// which in integer arithmetic gives the very bits of a full gather at the cost of the changed
+// photons only. Listing them keeps every SIMD lane of the gather busy (a sparse update would
+// otherwise pay for whole idle batches).
 //
 // `gather` counts its loop iterations and, after `round_budget` of them, keeps its place in
-// `gather_state`; the host runs rounds over the segments still listed until none is left. The sums are formed in the same
-// order whatever the budget, so the result does not depend on it: llvmpipe silently ends an
-// invocation's loops after 65535 iterations in all, and dense cells exceed that.
+// `gather_state`; the host runs rounds over the segments still listed until none is left. The
+// sums do not depend on the budget: llvmpipe silently ends an invocation's loops after 65535
+// iterations in all, and dense cells exceed that.
 // `composite` multiplies the segments front to back.
 // Rust twin: server/engine/src/passes/photon.rs.
 
@@ -96,12 +99,14 @@ fn gather_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
     if (hit.x >= hit.y) {
         if (photon.mode == MODE_FULL) {
-            segments[id] = Segment(vec3<f32>(0.0), 1.0, 0u, 0u, 0u, 0u);
+            segments[id] = Segment(vec3<u32>(0u), 1.0, vec3<u32>(0u), 0u, 0u, 0u, 0u, 0u);
         }
         return;
     }
     let bounds = segment_bounds(hit, id % photon.segments);
     var stale = true;
+    var delta = false;
+    var start = GatherState(vec3<u32>(0u), 0.0, vec3<u32>(0u), 1.0, 0u, 0u, NEXT_SAMPLE, 0u);
     if (photon.mode == MODE_UPDATE) {
         let old = segments[id];
         stale = hist_hits_opacity_query(old.hist_lo, old.hist_hi);
@@ -113,15 +118,22 @@ fn gather_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
             } else {
                 stale = atomicLoad(&counters[COUNTER_CHANGED]) > 0u;
             }
+            // Unless the change list overflowed, only the changed photons' terms differ.
+            delta = stale && atomicLoad(&counters[COUNTER_CHANGES]) <= photon.change_capacity;
+            if (delta) {
+                start.color_lo = old.color_lo;
+                start.color_hi = old.color_hi;
+                atomicAdd(&counters[COUNTER_DELTA], 1u);
+            }
         }
         if (stale) {
             atomicAdd(&counters[COUNTER_SEGMENTS], 1u);
         }
     }
     if (stale) {
-        let k = first_lattice_index(hit, bounds.x, pixel_jitter(pixel));
-        gather_state[id] = GatherState(vec3<f32>(0.0), k, vec3<f32>(0.0), 1.0, 0u, 0u, NEXT_SAMPLE, 0u);
-        gather_list[atomicAdd(&counters[COUNTER_LIST], 1u)] = id;
+        start.k = first_lattice_index(hit, bounds.x, pixel_jitter(pixel));
+        gather_state[id] = start;
+        gather_list[atomicAdd(&counters[COUNTER_LIST], 1u)] = select(id, id | DELTA_SEGMENT, delta);
     }
 }
 
@@ -129,11 +141,18 @@ fn gather_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
 // NEXT_SAMPLE = take the next lattice sample.
 const NEXT_SAMPLE: u32 = 28u;
 
-// Keeps the segment's place for the next round and lists it there.
-fn defer_segment(id: u32, st: GatherState, segment_count: u32) {
-    gather_state[id] = st;
+// Keeps the segment's place for the next round and lists it (the list entry, flag and all)
+// there.
+fn defer_segment(entry: u32, st: GatherState, segment_count: u32) {
+    gather_state[entry & ~DELTA_SEGMENT] = st;
     let next = 1u - photon.round_input;
-    gather_list[next * segment_count + atomicAdd(&counters[COUNTER_LIST + next], 1u)] = id;
+    gather_list[next * segment_count + atomicAdd(&counters[COUNTER_LIST + next], 1u)] = entry;
+}
+
+// What a sample's photons are weighted by: the transmittance to it, the integral of the
+// extinction over its step, the kernel's normalisation, and the fixed point's scale.
+fn sample_weight(transmit: f32, sigma: f32) -> f32 {
+    return transmit * (1.0 - exp(-sigma * photon.gather_step)) / sigma * photon.kernel_norm * FIXED_ONE;
 }
 
 @compute @workgroup_size(64)
@@ -144,7 +163,12 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
     if (invocation % photon.round_stride != 0u || slot >= atomicLoad(&counters[COUNTER_LIST + photon.round_input])) {
         return;
     }
-    let id = gather_list[photon.round_input * segment_count + slot];
+    let entry = gather_list[photon.round_input * segment_count + slot];
+    let id = entry & ~DELTA_SEGMENT;
+    // A delta segment visits the change grid, a fresh one the records'.
+    let grid = select(GRID_RECORDS, GRID_CHANGES, id != entry);
+    let cells_base = grid_base(grid);
+    let slots_base = sorted_base(grid);
     let pixel = id / photon.segments;
     let dir = pixel_ray(pixel);
     let out_dir = -dir;
@@ -162,13 +186,15 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
     // The current sample (recomputed when resuming inside one).
     var x = scene.eye + dir * (hit.x + (st.k + jitter) * step);
     var sigma = 0.0;
+    var weight = 0.0;
     var centre = grid_cell3(x);
     if (st.cell < NEXT_SAMPLE) {
         sigma = classify(data_at(x)).a * scene.density_scale;
+        weight = sample_weight(st.transmit, sigma);
     }
     loop {
         if (used >= budget) {
-            defer_segment(id, st, segment_count);
+            defer_segment(entry, st, segment_count);
             return;
         }
         used += 1u;
@@ -191,6 +217,7 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
                 st.k += 1.0;
                 continue;
             }
+            weight = sample_weight(st.transmit, sigma);
             centre = grid_cell3(x);
             st.cell = 0u;
             st.rank = 0u;
@@ -208,7 +235,7 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
             if (dot(gap, gap) >= r2) {
                 continue;
             }
-            let cell = grid_index(n);
+            let cell = cells_base + grid_index(n);
             let first = atomicLoad(&grid_cells[cell]);
             let end = atomicLoad(&grid_cells[cell + 1u]);
             let start = first + st.rank;
@@ -216,29 +243,55 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
             // (budget may be u32::MAX: no overflowing sum.)
             let stop = start + min(end - start, budget - min(used, budget));
             for (var i = start; i < stop; i++) {
-                let rec = records[grid_sorted[i]];
-                let d = x - rec.position;
+                let item = grid_sorted[slots_base + i];
+                var position: vec3<f32>;
+                var power: vec3<f32>;
+                var direction: vec3<f32>;
+                var negative = false;
+                if (grid == GRID_CHANGES) {
+                    let change = changes[item];
+                    position = change.position;
+                    power = change.power;
+                    direction = change.direction;
+                    negative = change.negative != 0u;
+                } else {
+                    let rec = records[item];
+                    position = rec.position;
+                    power = rec.power;
+                    direction = rec.direction;
+                }
+                let d = x - position;
                 let d2 = dot(d, d);
                 if (d2 < r2) {
-                    st.partial += rec.power * (phase_hg(dot(rec.direction, out_dir), scene.g) * (1.0 - d2 / r2));
+                    let x = power * (weight * phase_hg(dot(direction, out_dir), scene.g) * (1.0 - d2 / r2));
+                    let hi = fixed_hi(x);
+                    let lo = fixed_lo(x, hi);
+                    // 64-bit add or subtract per channel, wrapping (only the final sum is
+                    // known to be non-negative).
+                    if (negative) {
+                        let borrow = select(vec3<u32>(0u), vec3<u32>(1u), st.color_lo < lo);
+                        st.color_lo -= lo;
+                        st.color_hi -= hi + borrow;
+                    } else {
+                        st.color_lo += lo;
+                        let carry = select(vec3<u32>(0u), vec3<u32>(1u), st.color_lo < lo);
+                        st.color_hi += hi + carry;
+                    }
                 }
             }
             used += stop - start;
             if (stop < end) {
                 st.rank = stop - first;
-                defer_segment(id, st, segment_count);
+                defer_segment(entry, st, segment_count);
                 return;
             }
             st.rank = 0u;
         }
-        let w = (1.0 - exp(-sigma * step)) / sigma;
-        st.color += st.transmit * w * (st.partial * photon.kernel_norm);
         st.transmit *= exp(-sigma * step);
-        st.partial = vec3<f32>(0.0);
         st.k += 1.0;
         st.cell = NEXT_SAMPLE;
     }
-    segments[id] = Segment(st.color, st.transmit, st.hist_lo, st.hist_hi, 0u, 0u);
+    segments[id] = Segment(st.color_lo, st.transmit, st.color_hi, st.hist_lo, st.hist_hi, 0u, 0u, 0u);
 }
 
 @compute @workgroup_size(64)
@@ -251,7 +304,7 @@ fn composite(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     var transmit = 1.0;
     for (var s = 0u; s < photon.segments; s++) {
         let seg = segments[pixel * photon.segments + s];
-        radiance += transmit * seg.color;
+        radiance += transmit * fixed_to_f32(seg.color_lo, seg.color_hi);
         transmit *= seg.transmittance;
     }
     radiance += transmit * scene.env_radiance;

@@ -54,8 +54,17 @@ fn same_record(a: PhotonRecord, b: PhotonRecord) -> bool {
         && a.cell == b.cell && a.hist_lo == b.hist_lo && a.hist_hi == b.hist_hi;
 }
 
+// Appends a version of a changed record to the change list (dropped past its capacity: the
+// host then sees COUNTER_CHANGES over it and regathers instead).
+fn append_change(r: PhotonRecord, negative: u32) {
+    let slot = atomicAdd(&counters[COUNTER_CHANGES], 1u);
+    if (slot < photon.change_capacity) {
+        changes[slot] = PhotonChange(r.position, r.cell, r.power, negative, r.direction, 0u);
+    }
+}
+
 // Writes record `index`; in MODE_UPDATE a record that differs from the one it replaces marks
-// both positions as changed.
+// both positions as changed and lists both versions as changes.
 fn store_record(index: u32, record: PhotonRecord) {
     if (photon.mode == MODE_UPDATE) {
         let old = records[index];
@@ -63,9 +72,11 @@ fn store_record(index: u32, record: PhotonRecord) {
             atomicAdd(&counters[COUNTER_CHANGED], 1u);
             if (old.cell != CELL_NONE) {
                 mark_spatial(old.position);
+                append_change(old, 1u);
             }
             if (record.cell != CELL_NONE) {
                 mark_spatial(record.position);
+                append_change(record, 0u);
             }
         }
     }

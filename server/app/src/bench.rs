@@ -408,6 +408,8 @@ pub fn tf_edit(options: &TfEditBench) -> anyhow::Result<serde_json::Value> {
                 "speedup": speedup,
                 "photons_retraced_pct": report.photons_retraced_pct(),
                 "segments_recomputed_pct": report.segments_recomputed_pct(),
+                "segments_from_changes_pct": 100.0 * report.segments_delta as f64
+                    / report.segments.max(1) as f64,
                 "max_abs_diff": max_abs_diff,
                 "bit_exact": bit_exact,
                 "query_bins": query.count_ones(),

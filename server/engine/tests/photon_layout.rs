@@ -4,9 +4,10 @@
 use std::mem::{offset_of, size_of};
 
 use voxlight_engine::passes::photon::{
-    COUNTER_CHANGED, COUNTER_LIST, COUNTER_MAX_CELL, COUNTER_RETRACED, COUNTER_SEGMENTS,
-    COUNTER_SPATIAL, COUNTER_WORDS, GatherState, MODE_FULL, MODE_UPDATE, PhotonEmitter, PhotonPath,
-    PhotonRecord, PhotonUniforms, SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
+    COUNTER_CHANGED, COUNTER_CHANGES, COUNTER_DELTA, COUNTER_LIST, COUNTER_MAX_CELL,
+    COUNTER_RETRACED, COUNTER_SEGMENTS, COUNTER_SPATIAL, COUNTER_WORDS, GRID_CHANGES, GRID_RECORDS,
+    GatherState, MODE_FULL, MODE_UPDATE, PhotonChange, PhotonEmitter, PhotonPath, PhotonRecord,
+    PhotonUniforms, SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
 };
 use voxlight_engine::shaders;
 
@@ -52,8 +53,8 @@ fn photon_structs_match_wgsl() {
             fields!(PhotonUniforms: grid_dims, cell_count, radius, kernel_norm, majorant,
                 gather_step, photons_per_pass, path_count, record_count, bounces, path_offset,
                 dispatch_paths, mode, segments, query_lo, query_hi, emitter_count, spatial,
-                round_input, round_budget, round_stride, opacity_query_lo, opacity_query_hi, pad0,
-                pad1, pad2),
+                round_input, round_budget, round_stride, opacity_query_lo, opacity_query_hi,
+                grid_pass, change_capacity, record_capacity),
         );
         assert_layout(
             &module,
@@ -75,15 +76,21 @@ fn photon_structs_match_wgsl() {
         );
         assert_layout(
             &module,
+            "PhotonChange",
+            size_of::<PhotonChange>(),
+            fields!(PhotonChange: position, cell, power, negative, direction, pad0),
+        );
+        assert_layout(
+            &module,
             "Segment",
             size_of::<Segment>(),
-            fields!(Segment: color, transmittance, hist_lo, hist_hi, pad0, pad1),
+            fields!(Segment: color_lo, transmittance, color_hi, hist_lo, hist_hi, pad0, pad1, pad2),
         );
         assert_layout(
             &module,
             "GatherState",
             size_of::<GatherState>(),
-            fields!(GatherState: partial, k, color, transmit, hist_lo, hist_hi, cell, rank),
+            fields!(GatherState: color_lo, k, color_hi, transmit, hist_lo, hist_hi, cell, rank),
         );
     }
 }
@@ -118,6 +125,10 @@ fn photon_constants_match_wgsl() {
         ("COUNTER_SPATIAL", COUNTER_SPATIAL as u32),
         ("COUNTER_MAX_CELL", COUNTER_MAX_CELL as u32),
         ("COUNTER_LIST", COUNTER_LIST as u32),
+        ("COUNTER_CHANGES", COUNTER_CHANGES as u32),
+        ("COUNTER_DELTA", COUNTER_DELTA as u32),
+        ("GRID_RECORDS", GRID_RECORDS),
+        ("GRID_CHANGES", GRID_CHANGES),
         // The dirty-cell bits start right after the counters.
         ("COUNTER_DIRTY", COUNTER_WORDS as u32),
     ] {

@@ -1,6 +1,6 @@
 //! The passes of technique `photon` (shaders/photon_*.wgsl): photon tracing
-//! (`photon_trace.wgsl`: mark the paths an update retraces, trace), the hash-grid build (`photon_grid.wgsl`: clear, count, scan, scatter,
-//! sort) and gathering + compositing (`photon_gather.wgsl`: mark, gather in rounds, composite). All share one binding layout
+//! (`photon_trace.wgsl`: mark the paths an update retraces, trace), the hash-grid build
+//! (`photon_grid.wgsl`: clear, count, scan, scatter; of the records or of an update's changes) and gathering + compositing (`photon_gather.wgsl`: mark, gather in rounds, composite). All share one binding layout
 //! (declared once in `photon_common.wgsl`) and the `#[repr(C)]` records below.
 
 use bytemuck::{Pod, Zeroable};
@@ -35,9 +35,9 @@ pub struct PhotonUniforms {
     pub round_stride: u32,
     pub opacity_query_lo: u32,
     pub opacity_query_hi: u32,
-    pub pad0: u32,
-    pub pad1: u32,
-    pub pad2: u32,
+    pub grid_pass: u32,
+    pub change_capacity: u32,
+    pub record_capacity: u32,
 }
 
 /// Matches `PhotonRecord`: one stored photon interaction.
@@ -72,25 +72,48 @@ pub struct PhotonEmitter {
     pub cdf: f32,
 }
 
-/// Matches `Segment`: one view-ray segment.
+/// Matches `PhotonChange`: a changed record's old (negative = 1) or new version.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
+pub struct PhotonChange {
+    pub position: [f32; 3],
+    pub cell: u32,
+    pub power: [f32; 3],
+    pub negative: u32,
+    pub direction: [f32; 3],
+    pub pad0: u32,
+}
+
+/// Matches `Segment`: one view-ray segment (radiance in 64-bit fixed point, 40 fraction bits).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
 pub struct Segment {
-    pub color: [f32; 3],
+    pub color_lo: [u32; 3],
     pub transmittance: f32,
+    pub color_hi: [u32; 3],
     pub hist_lo: u32,
     pub hist_hi: u32,
     pub pad0: u32,
     pub pad1: u32,
+    pub pad2: u32,
+}
+
+impl Segment {
+    /// The segment's radiance, as the composite reads it.
+    pub fn color(&self) -> [f32; 3] {
+        std::array::from_fn(|k| {
+            (self.color_hi[k] as f32 + self.color_lo[k] as f32 / 4_294_967_296.0) / 256.0
+        })
+    }
 }
 
 /// Matches `GatherState`: where a segment's gather stands between rounds.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
 pub struct GatherState {
-    pub partial: [f32; 3],
+    pub color_lo: [u32; 3],
     pub k: f32,
-    pub color: [f32; 3],
+    pub color_hi: [u32; 3],
     pub transmit: f32,
     pub hist_lo: u32,
     pub hist_hi: u32,
@@ -104,8 +127,9 @@ pub const EMIT_DIRECTIONAL: u32 = 0;
 pub const EMIT_POINT: u32 = 1;
 pub const EMIT_ENVIRONMENT: u32 = 2;
 /// `counters` words: retraced paths, changed records, recomputed segments, spatial 3×2, the
-/// most photons in one hash cell, listed segments; the dirty-cell bits follow.
-pub const COUNTER_WORDS: usize = 12;
+/// most photons in one hash cell, listed segments (2), change-list entries, segments updated
+/// from the changes alone; the dirty-cell bits follow.
+pub const COUNTER_WORDS: usize = 14;
 pub const COUNTER_RETRACED: usize = 0;
 pub const COUNTER_CHANGED: usize = 1;
 pub const COUNTER_SEGMENTS: usize = 2;
@@ -114,6 +138,11 @@ pub const COUNTER_MAX_CELL: usize = 9;
 /// Segments in the two halves of the gather list (two words; the first must follow
 /// COUNTER_MAX_CELL: they are read together).
 pub const COUNTER_LIST: usize = 10;
+pub const COUNTER_CHANGES: usize = 12;
+pub const COUNTER_DELTA: usize = 13;
+/// `grid_pass` uniform: which grid the grid kernels build.
+pub const GRID_RECORDS: u32 = 0;
+pub const GRID_CHANGES: u32 = 1;
 /// `spatial` uniform: how segments learn of changed photons.
 pub const SPATIAL_NONE: u32 = 0;
 pub const SPATIAL_AXES: u32 = 1;
@@ -130,7 +159,6 @@ pub struct PhotonPass {
     pub grid_count: wgpu::ComputePipeline,
     pub grid_scan: wgpu::ComputePipeline,
     pub grid_scatter: wgpu::ComputePipeline,
-    pub grid_sort: wgpu::ComputePipeline,
     pub gather_mark: wgpu::ComputePipeline,
     pub gather: wgpu::ComputePipeline,
     pub composite: wgpu::ComputePipeline,
@@ -151,6 +179,7 @@ pub struct PhotonBindings<'a> {
     pub gather_list: &'a wgpu::Buffer,
     pub gather_state: &'a wgpu::Buffer,
     pub retrace_list: &'a wgpu::Buffer,
+    pub changes: &'a wgpu::Buffer,
     pub accum: &'a wgpu::Buffer,
     pub counters: &'a wgpu::Buffer,
 }
@@ -176,6 +205,7 @@ impl PhotonPass {
                 storage_entry(12, false),
                 storage_entry(13, false),
                 storage_entry(14, false),
+                storage_entry(15, false),
             ],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -209,7 +239,6 @@ impl PhotonPass {
             grid_count: pipeline("photon grid count", &grid, "grid_count"),
             grid_scan: pipeline("photon grid scan", &grid, "grid_scan"),
             grid_scatter: pipeline("photon grid scatter", &grid, "grid_scatter"),
-            grid_sort: pipeline("photon grid sort", &grid, "grid_sort"),
             gather_mark: pipeline("photon gather mark", &gather, "gather_mark"),
             gather: pipeline("photon gather", &gather, "gather"),
             composite: pipeline("photon composite", &gather, "composite"),
@@ -233,6 +262,7 @@ impl PhotonPass {
             (12, b.gather_list),
             (13, b.gather_state),
             (14, b.retrace_list),
+            (15, b.changes),
         ];
         let mut entries: Vec<wgpu::BindGroupEntry> = buffers
             .iter()

@@ -22,11 +22,11 @@ use std::time::{Duration, Instant};
 use voxlight_protocol::{Light, TransferFunction};
 
 use crate::passes::photon::{
-    COUNTER_CHANGED, COUNTER_LIST, COUNTER_MAX_CELL, COUNTER_RETRACED, COUNTER_SEGMENTS,
-    COUNTER_SPATIAL, COUNTER_WORDS, EMIT_DIRECTIONAL, EMIT_ENVIRONMENT, EMIT_POINT, GatherState,
-    MODE_FULL, MODE_UPDATE, PhotonBindings, PhotonEmitter, PhotonPath, PhotonRecord,
-    PhotonUniforms, SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment, dispatch_linear,
-    dispatch_single,
+    COUNTER_CHANGED, COUNTER_CHANGES, COUNTER_DELTA, COUNTER_LIST, COUNTER_RETRACED,
+    COUNTER_SEGMENTS, COUNTER_SPATIAL, COUNTER_WORDS, EMIT_DIRECTIONAL, EMIT_ENVIRONMENT,
+    EMIT_POINT, GRID_CHANGES, GRID_RECORDS, GatherState, MODE_FULL, MODE_UPDATE, PhotonBindings,
+    PhotonChange, PhotonEmitter, PhotonPass, PhotonPath, PhotonRecord, PhotonUniforms,
+    SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment, dispatch_linear, dispatch_single,
 };
 use crate::scene_gpu::{SceneUniforms, default_step};
 use crate::technique::{StepReport, Technique, TechniqueStats};
@@ -56,6 +56,10 @@ pub struct PhotonParams {
     /// keeps its place for the next; 0 takes the device's loop limit (`Gpu::loop_limit`; one
     /// round where there is none). The result does not depend on it.
     pub gather_budget: u32,
+    /// Entries of the change list (old and new versions of the records an update changes);
+    /// 0 sizes it to the map's records. An update that changes more gathers its photon-stale
+    /// segments afresh instead of from the changes alone: the same bits, more work.
+    pub change_list: u32,
 }
 
 /// How segments detect changed photons after a TF edit.
@@ -102,6 +106,7 @@ impl Default for PhotonParams {
             gather_step_voxels: 1.0,
             invalidation: Invalidation::DirtyCells,
             gather_budget: 0,
+            change_list: 0,
         }
     }
 }
@@ -113,6 +118,16 @@ struct Round {
     input: u32,
     budget: u32,
     stride: u32,
+}
+
+/// What one submission's uniforms select besides the edit: the mode, the paths a trace
+/// dispatch covers, the gather round and the grid the grid kernels build.
+#[derive(Debug, Clone, Default)]
+struct Dispatch {
+    mode: u32,
+    trace_paths: std::ops::Range<u32>,
+    round: Round,
+    grid_pass: u32,
 }
 
 /// The bins a TF edit changed (widened, see `update_tf`): any property, and opacity alone.
@@ -132,6 +147,10 @@ pub struct UpdateReport {
     pub records_changed: u64,
     pub segments: u64,
     pub segments_recomputed: u64,
+    /// Of those, segments updated from the changed photons alone (their opacity unchanged).
+    pub segments_delta: u64,
+    /// Entries of the change list (old and new versions of the changed records).
+    pub changes: u64,
     /// Spatial historygram after the update: x, y, z masks.
     pub spatial: [u64; 3],
 }
@@ -178,6 +197,10 @@ pub struct PhotonBudget {
     pub gather_state_bytes: u64,
     /// The paths an update retraces (indices), compacted by `trace_mark`.
     pub retrace_list_bytes: u64,
+    /// Entries of the change list.
+    pub change_entries: u64,
+    /// The records an update changed, old and new versions (its change grid's items).
+    pub change_bytes: u64,
     pub accum_bytes: u64,
     /// Counters plus one dirty bit per grid cell.
     pub counter_bytes: u64,
@@ -223,9 +246,15 @@ impl PhotonBudget {
         let pixels = width as u64 * height as u64;
         let record_bytes = records * size_of::<PhotonRecord>() as u64;
         let path_bytes = paths * size_of::<PhotonPath>() as u64;
-        let grid_cell_bytes = (2 * cells + 1) * 4;
-        // Sorted indices, then the scatter's scratch.
-        let grid_sorted_bytes = 2 * records * 4;
+        // Two grids (the records', an update's changes'), each cell starts then cursors.
+        let grid_cell_bytes = 2 * (2 * cells + 1) * 4;
+        let change_entries = match params.change_list {
+            0 => records,
+            n => (n as u64).min(records),
+        };
+        // The records' slots, then the changes'.
+        let grid_sorted_bytes = (records + change_entries) * 4;
+        let change_bytes = change_entries * size_of::<PhotonChange>() as u64;
         let segment_bytes = pixels * params.segments as u64 * size_of::<Segment>() as u64;
         // Two halves: a round's input and the segments left for the next.
         let gather_list_bytes = 2 * pixels * params.segments as u64 * 4;
@@ -247,6 +276,7 @@ impl PhotonBudget {
             + gather_list_bytes
             + gather_state_bytes
             + retrace_list_bytes
+            + change_bytes
             + accum_bytes
             + small;
         Ok(Self {
@@ -263,6 +293,8 @@ impl PhotonBudget {
             gather_list_bytes,
             gather_state_bytes,
             retrace_list_bytes,
+            change_entries,
+            change_bytes,
             accum_bytes,
             counter_bytes,
             total,
@@ -284,6 +316,7 @@ impl PhotonBudget {
             self.gather_list_bytes,
             self.gather_state_bytes,
             self.retrace_list_bytes,
+            self.change_bytes,
             self.accum_bytes,
             self.counter_bytes,
         ]
@@ -397,6 +430,7 @@ impl Photon {
         let gather_list = buffer("photon gather list", budget.gather_list_bytes, U::STORAGE);
         let gather_state = buffer("photon gather state", budget.gather_state_bytes, U::STORAGE);
         let retrace_list = buffer("photon retrace list", budget.retrace_list_bytes, U::STORAGE);
+        let changes = buffer("photon changes", budget.change_bytes, U::STORAGE);
         let accum = buffer("photon accum", budget.accum_bytes, U::STORAGE | U::COPY_SRC);
         let counters = buffer(
             "photon counters",
@@ -419,6 +453,7 @@ impl Photon {
                 gather_list: &gather_list,
                 gather_state: &gather_state,
                 retrace_list: &retrace_list,
+                changes: &changes,
                 accum: &accum,
                 counters: &counters,
             },
@@ -525,15 +560,13 @@ impl Photon {
         Ok(())
     }
 
-    fn write_uniforms(
-        &self,
-        engine: &Engine,
-        scene: &Scene,
-        mode: u32,
-        trace_paths: std::ops::Range<u32>,
-        query: Query,
-        round: Round,
-    ) {
+    fn write_uniforms(&self, engine: &Engine, scene: &Scene, query: Query, dispatch: Dispatch) {
+        let Dispatch {
+            mode,
+            trace_paths,
+            round,
+            grid_pass,
+        } = dispatch;
         let r = self.budget.radius;
         let path_count = self.passes * self.params.photons_per_pass;
         let uniforms = PhotonUniforms {
@@ -562,9 +595,9 @@ impl Photon {
             round_stride: round.stride.max(1),
             opacity_query_lo: query.opacity as u32,
             opacity_query_hi: (query.opacity >> 32) as u32,
-            pad0: 0,
-            pad1: 0,
-            pad2: 0,
+            grid_pass,
+            change_capacity: self.budget.change_entries as u32,
+            record_capacity: self.budget.records as u32,
         };
         engine
             .gpu
@@ -594,14 +627,12 @@ impl Photon {
         if count == 0 {
             return;
         }
-        self.write_uniforms(
-            engine,
-            scene,
+        let dispatch = Dispatch {
             mode,
-            offset..offset + count,
-            query,
-            Round::default(),
-        );
+            trace_paths: offset..offset + count,
+            ..Dispatch::default()
+        };
+        self.write_uniforms(engine, scene, query, dispatch);
         let mut encoder = Self::encoder(engine, "photon trace");
         dispatch_linear(
             &mut encoder,
@@ -613,9 +644,10 @@ impl Photon {
         engine.gpu.queue.submit([encoder.finish()]);
     }
 
-    /// Rebuilds the grid over every record, gathers segments (all in MODE_FULL, stale ones in
-    /// MODE_UPDATE; `gather_mark` lists them so that the gather's SIMD lanes all work) in
-    /// rounds within the device's loop limit, and composites.
+    /// Rebuilds the grid over every record (and, in MODE_UPDATE, the grid over the changes),
+    /// gathers segments (all in MODE_FULL, stale ones in MODE_UPDATE; `gather_mark` lists
+    /// them so that the gather's SIMD lanes all work) in rounds within the device's loop
+    /// limit, and composites.
     fn grid_and_gather(
         &mut self,
         engine: &Engine,
@@ -623,63 +655,40 @@ impl Photon {
         mode: u32,
         query: Query,
     ) -> Result<(), EngineError> {
-        self.write_uniforms(engine, scene, mode, 0..0, query, Round::default());
         let pass = &engine.photon;
         let bg = &self.bind_group;
-        let mut encoder = Self::encoder(engine, "photon grid");
-        let cells = self.budget.cells as u32;
         let records = self.passes * self.params.photons_per_pass * self.params.bounces;
         let pixels = self.width * self.height;
         let segments = pixels * self.params.segments;
-        dispatch_linear(
-            &mut encoder,
-            "photon grid clear",
-            &pass.grid_clear,
-            bg,
-            cells,
-        );
-        dispatch_linear(
-            &mut encoder,
-            "photon grid count",
-            &pass.grid_count,
-            bg,
-            records,
-        );
-        dispatch_single(&mut encoder, "photon grid scan", &pass.grid_scan, bg);
-        dispatch_linear(
-            &mut encoder,
-            "photon grid scatter",
-            &pass.grid_scatter,
-            bg,
-            records,
-        );
-        dispatch_linear(
-            &mut encoder,
-            "photon grid sort",
-            &pass.grid_sort,
-            bg,
-            records,
-        );
-        dispatch_linear(
-            &mut encoder,
-            "photon gather mark",
-            &pass.gather_mark,
-            bg,
-            segments,
-        );
-        engine.gpu.queue.submit([encoder.finish()]);
-        let (fullest, mut listed) = self.fullest_cell_and_listed(engine)?;
-        if let Some(limit) = engine.gpu.loop_limit() {
-            // The grid sort ranks a record among its cell's records in one loop.
-            if fullest >= limit / 2 {
-                return Err(EngineError::InvalidScene(format!(
-                    "photon: {fullest} photons fall in one hash cell, more than this device \
-                     ({}) can visit in one shader invocation; use a smaller gather radius or \
-                     fewer photons per pass",
-                    engine.gpu.adapter_name()
-                )));
+        let grids: &[(u32, u32)] = if mode == MODE_UPDATE {
+            &[
+                (GRID_RECORDS, records),
+                (GRID_CHANGES, self.budget.change_entries as u32),
+            ]
+        } else {
+            &[(GRID_RECORDS, records)]
+        };
+        for &(grid, items) in grids {
+            let dispatch = Dispatch {
+                mode,
+                grid_pass: grid,
+                ..Dispatch::default()
+            };
+            self.write_uniforms(engine, scene, query, dispatch);
+            let mut encoder = Self::encoder(engine, "photon grid");
+            self.build_grid(&mut encoder, pass, items);
+            if grid == GRID_RECORDS {
+                dispatch_linear(
+                    &mut encoder,
+                    "photon gather mark",
+                    &pass.gather_mark,
+                    bg,
+                    segments,
+                );
             }
+            engine.gpu.queue.submit([encoder.finish()]);
         }
+        let mut listed = self.counter(engine, COUNTER_LIST)?;
         let lane_budget = self.round_budget(engine);
         let lanes = engine.gpu.info.subgroup_max_size.clamp(1, 64);
         let mut rounds = 0;
@@ -699,7 +708,12 @@ impl Photon {
                 budget,
                 stride,
             };
-            self.write_uniforms(engine, scene, mode, 0..0, query, round);
+            let dispatch = Dispatch {
+                mode,
+                round,
+                ..Dispatch::default()
+            };
+            self.write_uniforms(engine, scene, query, dispatch);
             engine.gpu.queue.write_buffer(
                 &self.counters,
                 (COUNTER_LIST as u64 + output as u64) * 4,
@@ -743,7 +757,11 @@ impl Photon {
         paths: u32,
         query: Query,
     ) -> Result<u32, EngineError> {
-        self.write_uniforms(engine, scene, MODE_UPDATE, 0..0, query, Round::default());
+        let dispatch = Dispatch {
+            mode: MODE_UPDATE,
+            ..Dispatch::default()
+        };
+        self.write_uniforms(engine, scene, query, dispatch);
         let mut encoder = Self::encoder(engine, "photon trace mark");
         dispatch_linear(
             &mut encoder,
@@ -756,15 +774,21 @@ impl Photon {
         self.counter(engine, COUNTER_RETRACED)
     }
 
-    /// The most photons in one hash cell of the grid just built, and how many segments the
-    /// gather will compute (blocks on the GPU).
-    fn fullest_cell_and_listed(&self, engine: &Engine) -> Result<(u32, u32), EngineError> {
-        // COUNTER_LIST follows COUNTER_MAX_CELL.
-        let bytes = engine
-            .gpu
-            .read_buffer_range(&self.counters, COUNTER_MAX_CELL as u64 * 4, 8)?;
-        let word = |i: usize| bytemuck::pod_read_unaligned::<u32>(&bytes[4 * i..4 * i + 4]);
-        Ok((word(0), word(1)))
+    /// Clear, count, scan and scatter of the grid the uniforms' `grid_pass` names, over
+    /// `items` records or change-list entries (those past the list's length return at once).
+    fn build_grid(&self, encoder: &mut wgpu::CommandEncoder, pass: &PhotonPass, items: u32) {
+        let bg = &self.bind_group;
+        let cells = self.budget.cells as u32;
+        dispatch_linear(encoder, "photon grid clear", &pass.grid_clear, bg, cells);
+        dispatch_linear(encoder, "photon grid count", &pass.grid_count, bg, items);
+        dispatch_single(encoder, "photon grid scan", &pass.grid_scan, bg);
+        dispatch_linear(
+            encoder,
+            "photon grid scatter",
+            &pass.grid_scatter,
+            bg,
+            items,
+        );
     }
 
     /// One counter word (blocks on the GPU).
@@ -856,6 +880,7 @@ impl Photon {
                 segments,
                 segments_recomputed: segments,
                 spatial: [u64::MAX; 3],
+                ..UpdateReport::default()
             };
             self.last_update = Some(report);
             return Ok(report);
@@ -882,6 +907,8 @@ impl Photon {
             records_changed: words[COUNTER_CHANGED] as u64,
             segments,
             segments_recomputed: words[COUNTER_SEGMENTS] as u64,
+            segments_delta: words[COUNTER_DELTA] as u64,
+            changes: words[COUNTER_CHANGES] as u64,
             spatial: [mask(0), mask(1), mask(2)],
         };
         self.photons_traced += report.paths_retraced;
@@ -917,13 +944,23 @@ impl Photon {
             grid_cells: bytemuck::try_cast_slice::<u8, u32>(&grid_cells)
                 .map_err(|_| cast("grid"))?[..self.budget.cells as usize + 1]
                 .to_vec(),
+            // The order within a cell is the atomics' (the sums do not depend on it): each
+            // cell's records in index order, so that equal grids compare equal.
             grid_sorted: {
                 let cells: &[u32] =
                     bytemuck::try_cast_slice(&grid_cells).map_err(|_| cast("grid"))?;
-                let total = (cells[self.budget.cells as usize] as usize).min(n_records);
-                bytemuck::try_cast_slice::<u8, u32>(&grid_sorted).map_err(|_| cast("grid"))?
-                    [..total]
-                    .to_vec()
+                let n_cells = self.budget.cells as usize;
+                let total = (cells[n_cells] as usize).min(n_records);
+                let mut sorted = bytemuck::try_cast_slice::<u8, u32>(&grid_sorted)
+                    .map_err(|_| cast("grid"))?[..total]
+                    .to_vec();
+                for c in 0..n_cells {
+                    let (first, end) = (cells[c] as usize, (cells[c + 1] as usize).min(total));
+                    if first < end {
+                        sorted[first..end].sort_unstable();
+                    }
+                }
+                sorted
             },
         })
     }
