@@ -53,12 +53,17 @@ fn cells_hit(pixel: u32, hit: vec2<f32>, ta: f32, tb: f32, dir: vec3<f32>) -> bo
         if (t >= tb) {
             break;
         }
-        let cell = dirty_index(dirty_cell3(scene.eye + dir * t));
-        if ((atomicLoad(&counters[COUNTER_DIRTY + cell / 32u]) & (1u << (cell % 32u))) != 0u) {
+        if (dirty(scene.eye + dir * t)) {
             return true;
         }
     }
     return false;
+}
+
+// Whether a changed photon may lie within the gather radius of x.
+fn dirty(x: vec3<f32>) -> bool {
+    let cell = dirty_index(dirty_cell3(x));
+    return (atomicLoad(&counters[COUNTER_DIRTY + cell / 32u]) & (1u << (cell % 32u))) != 0u;
 }
 
 fn pixel_ray(pixel: u32) -> vec3<f32> {
@@ -214,6 +219,12 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
             st.hist_hi |= bit.y;
             sigma = classify(v).a * scene.density_scale;
             if (sigma <= 0.0) {
+                st.k += 1.0;
+                continue;
+            }
+            if (grid == GRID_CHANGES && !dirty(x)) {
+                // No changed photon within the radius: the sample's terms are as before.
+                st.transmit *= exp(-sigma * step);
                 st.k += 1.0;
                 continue;
             }

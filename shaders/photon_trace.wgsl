@@ -15,10 +15,11 @@
 // one affected path runs while the others idle.
 // Rust twin: server/engine/src/passes/photon.rs.
 
-// Marks the spatial historygram (3×64 bits) at world position p and, for SPATIAL_CELLS, the
-// dirty bits of the half-size cells within two of p's (every one a sample within the gather
-// radius of p can lie in). A bit already set is not written again (dense edits mark the same
-// cells many times).
+// Marks the spatial historygram (3×64 bits) at world position p and the dirty bits of the
+// half-size cells within two of p's (every one a sample within the gather radius of p can lie
+// in: SPATIAL_CELLS finds stale segments by them, and every delta gather skips the samples
+// outside them). A bit already set is not written again (dense edits mark the same cells many
+// times).
 fn mark_spatial(p: vec3<f32>) {
     let b = spatial_bins(p);
     for (var axis = 0u; axis < 3u; axis++) {
@@ -26,7 +27,7 @@ fn mark_spatial(p: vec3<f32>) {
         let word = COUNTER_SPATIAL + axis * 2u + bin / 32u;
         atomicOr(&counters[word], 1u << (bin % 32u));
     }
-    if (photon.spatial == SPATIAL_CELLS) {
+    {
         let c = dirty_cell3(p);
         let dims = vec3<i32>(2u * photon.grid_dims);
         for (var dz = -2; dz <= 2; dz++) {
