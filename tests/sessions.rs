@@ -34,15 +34,20 @@ fn red_tf() -> serde_json::Value {
 }
 
 /// Waits for the `edited` echo of an edit and returns its version.
-async fn edited_version(client: &mut Client, by_name: &str) -> u64 {
+/// The next edit `by_name` made, as another viewer learns it, and the version it produced.
+async fn edit_by(client: &mut Client, by_name: &str) -> (ClientMessage, u64) {
     match client
         .text_where(|m| matches!(m, ServerMessage::Edited { by, .. } if by.name == by_name))
         .await
         .unwrap()
     {
-        ServerMessage::Edited { version, .. } => version,
+        ServerMessage::Edited { edit, version, .. } => (*edit, version),
         _ => unreachable!(),
     }
+}
+
+async fn edited_version(client: &mut Client, by_name: &str) -> u64 {
+    edit_by(client, by_name).await.1
 }
 
 async fn converged_frame(client: &mut Client, version: u64) -> DecodedFrame {
@@ -128,14 +133,8 @@ async fn two_viewers_share_one_rendering_and_see_each_others_edits() {
     ada.send_json(json!({"type": "camera", "eye": [1.5, -1.8, 0.3], "target": [0, 0, 0], "up": [0, 0, 1], "fov_deg": 30}))
         .await
         .unwrap();
-    let edit = bob
-        .text_where(|m| matches!(m, ServerMessage::Edited { by, .. } if by.name == "Ada"))
-        .await
-        .unwrap();
-    let ServerMessage::Edited { edit, .. } = edit else {
-        unreachable!()
-    };
-    assert!(matches!(*edit, ClientMessage::Camera(c) if c.eye == [1.5, -1.8, 0.3]));
+    let (edit, _) = edit_by(&mut bob, "Ada").await;
+    assert!(matches!(edit, ClientMessage::Camera(c) if c.eye == [1.5, -1.8, 0.3]));
 
     // Renaming reaches everyone through the viewer list.
     bob.send_json(json!({"type": "name", "name": "Robert"}))
@@ -540,14 +539,8 @@ async fn technique_options_configure_the_session_and_reach_every_viewer() {
         "options": {"manylight": {"face_res": 16}}}))
         .await
         .unwrap();
-    let edit = bob
-        .text_where(|m| matches!(m, ServerMessage::Edited { by, .. } if by.name == "Ada"))
-        .await
-        .unwrap();
-    let ServerMessage::Edited { edit, .. } = edit else {
-        unreachable!()
-    };
-    let ClientMessage::Technique { name, options } = *edit else {
+    let (edit, _) = edit_by(&mut bob, "Ada").await;
+    let ClientMessage::Technique { name, options } = edit else {
         panic!("expected the technique edit, got {edit:?}");
     };
     assert_eq!(name, "manylight");
