@@ -133,21 +133,20 @@ const CELL_NONE: u32 = 0xffffffffu;
 const HIST_BINS: u32 = 64u;
 
 // Counters written by the passes: retraced paths, changed photon records, recomputed segments,
-// the spatial historygram (x lo/hi, y lo/hi, z lo/hi), the most photons in one hash cell, the
-// segments listed in each half of gather_list.
+// the spatial historygram (x lo/hi, y lo/hi, z lo/hi), the segments listed in each half of
+// gather_list, change-list entries, segments updated from the changes alone.
 const COUNTER_RETRACED: u32 = 0u;
 const COUNTER_CHANGED: u32 = 1u;
 const COUNTER_SEGMENTS: u32 = 2u;
 const COUNTER_SPATIAL: u32 = 3u;
-const COUNTER_MAX_CELL: u32 = 9u;
 // Segments in the two halves of gather_list (two words).
-const COUNTER_LIST: u32 = 10u;
+const COUNTER_LIST: u32 = 9u;
 // Entries an update appended to the change list (more than change_capacity: it overflowed).
-const COUNTER_CHANGES: u32 = 12u;
+const COUNTER_CHANGES: u32 = 11u;
 // Segments an update recomputed from the change grid alone (DELTA_SEGMENT).
-const COUNTER_DELTA: u32 = 13u;
-// Dirty-cell bits (SPATIAL_CELLS) follow the counters.
-const COUNTER_DIRTY: u32 = 14u;
+const COUNTER_DELTA: u32 = 12u;
+// Dirty-cell bits follow the counters.
+const COUNTER_DIRTY: u32 = 13u;
 const GRID_RECORDS: u32 = 0u;
 const GRID_CHANGES: u32 = 1u;
 // A gather_list entry with this bit updates its segment by the change grid's photons only.
@@ -258,8 +257,9 @@ fn grid_cell3(p: vec3<f32>) -> vec3<i32> {
     return clamp(c, vec3<i32>(0), vec3<i32>(photon.grid_dims) - 1);
 }
 
-// Dirty-cell grid (SPATIAL_CELLS): half the hash cell's edge, so that marking every dirty cell
-// within two of a changed photon's covers its gather radius more tightly than whole cells.
+// Dirty-cell grid (SPATIAL_CELLS, and every delta gather): half the hash cell's edge, so that
+// marking every dirty cell within two of a changed photon's covers its gather radius more
+// tightly than whole cells.
 fn dirty_cell3(p: vec3<f32>) -> vec3<i32> {
     let c = vec3<i32>(floor((p - scene.box_min) / (0.5 * photon.radius)));
     return clamp(c, vec3<i32>(0), vec3<i32>(2u * photon.grid_dims) - 1);

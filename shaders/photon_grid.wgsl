@@ -9,7 +9,6 @@
 const SCAN_THREADS: u32 = 256u;
 
 var<workgroup> scan_sums: array<u32, SCAN_THREADS>;
-var<workgroup> scan_max: array<u32, SCAN_THREADS>;
 
 fn cursor(c: u32) -> u32 {
     return grid_base(photon.grid_pass) + photon.cell_count + 1u + c;
@@ -62,29 +61,19 @@ fn grid_scan(@builtin(local_invocation_id) lid: vec3<u32>) {
     let first = min(lid.x * chunk, n);
     let end = min(first + chunk, n);
     var sum = 0u;
-    var most = 0u;
     for (var c = first; c < end; c++) {
-        let count = atomicLoad(&grid_cells[cursor(c)]);
-        sum += count;
-        most = max(most, count);
+        sum += atomicLoad(&grid_cells[cursor(c)]);
     }
     scan_sums[lid.x] = sum;
-    scan_max[lid.x] = most;
     workgroupBarrier();
     if (lid.x == 0u) {
         var running = 0u;
-        var fullest = 0u;
         for (var t = 0u; t < SCAN_THREADS; t++) {
             let s = scan_sums[t];
             scan_sums[t] = running;
             running += s;
-            fullest = max(fullest, scan_max[t]);
         }
         atomicStore(&grid_cells[base + n], running);
-        if (photon.grid_pass == GRID_RECORDS) {
-            // Reported with the map (the densest cell sets the gather's rounds).
-            atomicStore(&counters[COUNTER_MAX_CELL], fullest);
-        }
     }
     workgroupBarrier();
     var offset = scan_sums[lid.x];

@@ -4,10 +4,10 @@
 use std::mem::{offset_of, size_of};
 
 use voxlight_engine::passes::photon::{
-    COUNTER_CHANGED, COUNTER_CHANGES, COUNTER_DELTA, COUNTER_LIST, COUNTER_MAX_CELL,
-    COUNTER_RETRACED, COUNTER_SEGMENTS, COUNTER_SPATIAL, COUNTER_WORDS, GRID_CHANGES, GRID_RECORDS,
-    GatherState, MODE_FULL, MODE_UPDATE, PhotonChange, PhotonEmitter, PhotonPath, PhotonRecord,
-    PhotonUniforms, SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
+    COUNTER_CHANGED, COUNTER_CHANGES, COUNTER_DELTA, COUNTER_LIST, COUNTER_RETRACED,
+    COUNTER_SEGMENTS, COUNTER_SPATIAL, COUNTER_WORDS, GRID_CHANGES, GRID_RECORDS, GatherState,
+    MODE_FULL, MODE_UPDATE, PhotonChange, PhotonEmitter, PhotonPath, PhotonRecord, PhotonUniforms,
+    SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
 };
 use voxlight_engine::shaders;
 
@@ -123,7 +123,6 @@ fn photon_constants_match_wgsl() {
         ("COUNTER_CHANGED", COUNTER_CHANGED as u32),
         ("COUNTER_SEGMENTS", COUNTER_SEGMENTS as u32),
         ("COUNTER_SPATIAL", COUNTER_SPATIAL as u32),
-        ("COUNTER_MAX_CELL", COUNTER_MAX_CELL as u32),
         ("COUNTER_LIST", COUNTER_LIST as u32),
         ("COUNTER_CHANGES", COUNTER_CHANGES as u32),
         ("COUNTER_DELTA", COUNTER_DELTA as u32),

@@ -98,15 +98,6 @@ pub struct Segment {
     pub pad2: u32,
 }
 
-impl Segment {
-    /// The segment's radiance, as the composite reads it.
-    pub fn color(&self) -> [f32; 3] {
-        std::array::from_fn(|k| {
-            (self.color_hi[k] as f32 + self.color_lo[k] as f32 / 4_294_967_296.0) / 256.0
-        })
-    }
-}
-
 /// Matches `GatherState`: where a segment's gather stands between rounds.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
@@ -126,20 +117,18 @@ pub const MODE_UPDATE: u32 = 1;
 pub const EMIT_DIRECTIONAL: u32 = 0;
 pub const EMIT_POINT: u32 = 1;
 pub const EMIT_ENVIRONMENT: u32 = 2;
-/// `counters` words: retraced paths, changed records, recomputed segments, spatial 3×2, the
-/// most photons in one hash cell, listed segments (2), change-list entries, segments updated
-/// from the changes alone; the dirty-cell bits follow.
-pub const COUNTER_WORDS: usize = 14;
+/// `counters` words: retraced paths, changed records, recomputed segments, spatial 3×2,
+/// listed segments (2), change-list entries, segments updated from the changes alone; the
+/// dirty-cell bits follow.
+pub const COUNTER_WORDS: usize = 13;
 pub const COUNTER_RETRACED: usize = 0;
 pub const COUNTER_CHANGED: usize = 1;
 pub const COUNTER_SEGMENTS: usize = 2;
 pub const COUNTER_SPATIAL: usize = 3;
-pub const COUNTER_MAX_CELL: usize = 9;
-/// Segments in the two halves of the gather list (two words; the first must follow
-/// COUNTER_MAX_CELL: they are read together).
-pub const COUNTER_LIST: usize = 10;
-pub const COUNTER_CHANGES: usize = 12;
-pub const COUNTER_DELTA: usize = 13;
+/// Segments in the two halves of the gather list (two words).
+pub const COUNTER_LIST: usize = 9;
+pub const COUNTER_CHANGES: usize = 11;
+pub const COUNTER_DELTA: usize = 12;
 /// `grid_pass` uniform: which grid the grid kernels build.
 pub const GRID_RECORDS: u32 = 0;
 pub const GRID_CHANGES: u32 = 1;
