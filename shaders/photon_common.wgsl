@@ -27,9 +27,14 @@ struct PhotonUniforms {
     mode: u32,
     // View-ray segments per pixel (Vn).
     segments: u32,
-    // Query historygram of the edit (64 bits).
-    query_lo: u32,
-    query_hi: u32,
+    // The edit's query split by what it can change on a photon path (64 bits each). Rejection
+    // query: bins whose opacity rose, where a rejected tentative collision may become a real
+    // one; it meets the historygram of every tentative point. Collision query: bins whose
+    // colour changed or opacity fell, where a real collision may change its albedo or be
+    // rejected; it meets the bins of the path's collisions only (a rejected point stays
+    // rejected when the opacity falls, and its colour is never used).
+    rejection_query_lo: u32,
+    rejection_query_hi: u32,
     emitter_count: u32,
     // How segments learn of changed photons: SPATIAL_NONE (any change invalidates every
     // segment), SPATIAL_AXES (the 3×64-bit spatial historygram), SPATIAL_CELLS (a dirty bit per
@@ -52,6 +57,10 @@ struct PhotonUniforms {
     change_capacity: u32,
     // Records the map holds; the change grid's slots start there in grid_sorted.
     record_capacity: u32,
+    collision_query_lo: u32,
+    collision_query_hi: u32,
+    pad0: u32,
+    pad1: u32,
 }
 
 // A stored photon interaction (a real collision): where, the direction it arrived from (travel
@@ -224,8 +233,8 @@ fn hist_bit(v: f32) -> vec2<u32> {
     return vec2<u32>(0u, 1u << (bin - 32u));
 }
 
-fn hist_hits_query(lo: u32, hi: u32) -> bool {
-    return ((lo & photon.query_lo) | (hi & photon.query_hi)) != 0u;
+fn hist_hits_rejection_query(lo: u32, hi: u32) -> bool {
+    return ((lo & photon.rejection_query_lo) | (hi & photon.rejection_query_hi)) != 0u;
 }
 
 fn hist_hits_opacity_query(lo: u32, hi: u32) -> bool {

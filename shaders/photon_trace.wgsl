@@ -135,9 +135,32 @@ fn trace_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
         return;
     }
     let path = paths[p];
-    if (hist_hits_query(path.end_lo, path.end_hi)) {
+    var affected = hist_hits_rejection_query(path.end_lo, path.end_hi);
+    for (var j = 0u; j < path.count && !affected; j++) {
+        affected = collision_hits_query(records[p * photon.bounces + j]);
+    }
+    if (affected) {
         retrace_list[atomicAdd(&counters[COUNTER_RETRACED], 1u)] = p;
     }
+}
+
+// Whether the edit may change what happened at record r's collision: its albedo, or whether
+// it was one (the collision query). The record's data value is recomputed from its position,
+// the very point the tracker classified.
+fn collision_hits_query(r: PhotonRecord) -> bool {
+    let bit = hist_bit(data_at(r.position));
+    return ((bit.x & photon.collision_query_lo) | (bit.y & photon.collision_query_hi)) != 0u;
+}
+
+// Opacity at v for delta tracking, interpolated as a weighted sum rather than mix's
+// a + f·(b − a): each term rounds monotonically, so where an edit lowers LUT entries the
+// result cannot rise, and a rejected tentative collision stays rejected (what the collision
+// query's exemption of rejected points relies on).
+fn tracking_opacity(v: f32) -> f32 {
+    let x = clamp(v, 0.0, 1.0) * f32(TF_LUT_SIZE - 1u);
+    let i = min(u32(x), TF_LUT_SIZE - 2u);
+    let f = x - f32(i);
+    return tf_lut[i].a * (1.0 - f) + tf_lut[i + 1u].a * f;
 }
 
 @compute @workgroup_size(64)
@@ -158,16 +181,18 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     if (photon.mode == MODE_UPDATE) {
         let path = paths[p];
         old_count = path.count;
-        // Walk back to the last interaction the edit did not affect.
-        var j = i32(path.count) - 1;
-        while (j >= 0) {
+        // Start after the last interaction the edit did not affect: the first affected one is
+        // the first whose flight met the rejection query or whose collision meets the
+        // collision query.
+        var j = 0;
+        while (j < i32(path.count)) {
             let r = records[base + u32(j)];
-            if (!hist_hits_query(r.hist_lo, r.hist_hi)) {
+            if (hist_hits_rejection_query(r.hist_lo, r.hist_hi) || collision_hits_query(r)) {
                 break;
             }
-            j -= 1;
+            j += 1;
         }
-        start = j;
+        start = j - 1;
     }
 
     var position = vec3<f32>(0.0);
@@ -217,19 +242,19 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
             if (t >= hit.y) {
                 break;
             }
-            let v = data_at(origin + dir * t);
+            let x = origin + dir * t;
+            let v = data_at(x);
             hist |= hist_bit(v);
-            let m = classify(v);
-            if (rng_next(&rng) * photon.majorant < m.a * scene.density_scale) {
+            if (rng_next(&rng) * photon.majorant < tracking_opacity(v) * scene.density_scale) {
                 collided = true;
-                albedo = m.rgb;
+                albedo = classify(v).rgb;
+                position = x;
                 break;
             }
         }
         if (!collided) {
             break;
         }
-        position = origin + dir * t;
         direction = dir;
         power *= albedo;
         store_record(base + k, PhotonRecord(position, grid_index(grid_cell3(position)), power, hist.x, direction, hist.y));

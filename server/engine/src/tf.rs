@@ -108,6 +108,19 @@ pub fn opacity_query_historygram(old: &TransferFunction, new: &TransferFunction)
     changed_bins(old, new, |x, y| x[3] != y[3])
 }
 
+/// The bins whose opacity rose: where a rejected tentative collision of delta tracking may
+/// become a real one. With `collision_query_historygram`, a split of `query_historygram`.
+pub fn opacity_rise_historygram(old: &TransferFunction, new: &TransferFunction) -> u64 {
+    changed_bins(old, new, |x, y| y[3] > x[3])
+}
+
+/// The bins whose colour changed or opacity fell: where a real collision may change its albedo
+/// or be rejected. A rejected tentative collision there stays rejected and its colour is never
+/// used, so a path that only passed through these bins is unaffected.
+pub fn collision_query_historygram(old: &TransferFunction, new: &TransferFunction) -> u64 {
+    changed_bins(old, new, |x, y| y[3] < x[3] || x[..3] != y[..3])
+}
+
 /// Bins whose LUT entries `differ` between the two tables.
 fn changed_bins(
     old: &TransferFunction,
@@ -168,6 +181,41 @@ mod tests {
         for i in [0, 100, 511, 1023] {
             let v = i as f32 / (TF_LUT_SIZE - 1) as f32;
             assert_eq!(lut[i], evaluate(&tf.points, v));
+        }
+    }
+
+    #[test]
+    fn rise_and_collision_queries_split_the_query() {
+        let base = TransferFunction {
+            points: vec![
+                point(0.0, [1.0; 3], 0.0),
+                point(0.3, [1.0; 3], 0.0),
+                point(0.4, [1.0; 3], 0.5),
+                point(0.6, [1.0; 3], 0.5),
+                point(0.7, [1.0; 3], 0.0),
+                point(1.0, [1.0; 3], 0.0),
+            ],
+        };
+        let edit = |f: &dyn Fn(&mut TfPoint)| {
+            let mut tf = base.clone();
+            tf.points[2..4].iter_mut().for_each(f);
+            tf
+        };
+        let recoloured = edit(&|p| p.color = [0.2, 0.4, 0.9]);
+        let fainter = edit(&|p| p.opacity = 0.1);
+        let denser = edit(&|p| p.opacity = 0.9);
+        for (name, tf, rises, collides) in [
+            ("colour", &recoloured, false, true),
+            ("fainter", &fainter, false, true),
+            ("denser", &denser, true, false),
+        ] {
+            let all = query_historygram(&base, tf);
+            let rise = opacity_rise_historygram(&base, tf);
+            let collision = collision_query_historygram(&base, tf);
+            assert_ne!(all, 0, "{name}");
+            assert_eq!(rise | collision, all, "{name}: the split covers the query");
+            assert_eq!(rise != 0, rises, "{name}: {rise:064b}");
+            assert_eq!(collision != 0, collides, "{name}: {collision:064b}");
         }
     }
 

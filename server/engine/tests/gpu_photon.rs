@@ -157,6 +157,44 @@ fn incremental_tf_edits_equal_a_full_recompute_bit_for_bit() {
             true,
         ),
         (
+            // Only opacity rises: the rejection query alone.
+            "opacity rise: tall block back",
+            cornell_tf(|n, c, _| {
+                if n == "sphere" {
+                    *c = [0.9, 0.1, 0.1];
+                }
+            }),
+            true,
+        ),
+        (
+            "opacity fall: tall block removed again",
+            cornell_tf(|n, c, o| {
+                if n == "sphere" {
+                    *c = [0.9, 0.1, 0.1];
+                }
+                if n == "tall block" {
+                    *o = 0.0;
+                }
+            }),
+            true,
+        ),
+        (
+            // Most paths cross the thin medium without a collision in it.
+            "colour only: thin medium recoloured",
+            cornell_tf(|n, c, o| {
+                if n == "sphere" {
+                    *c = [0.9, 0.1, 0.1];
+                }
+                if n == "tall block" {
+                    *o = 0.0;
+                }
+                if n == "medium" {
+                    *c = [0.5, 0.8, 0.9];
+                }
+            }),
+            true,
+        ),
+        (
             "local: thicker medium",
             cornell_tf(|n, c, o| {
                 if n == "sphere" {
@@ -195,6 +233,17 @@ fn incremental_tf_edits_equal_a_full_recompute_bit_for_bit() {
         let mut photon = Photon::new(engine(), volume.clone(), &s, p).expect("photon");
         converge(&mut photon, &s);
         for (name, tf, local) in &edits {
+            // The paths whose historygram meets the whole query: what the paper retraces.
+            let query = voxlight_engine::tf::query_historygram(&s.tf, tf);
+            let widened = query | (query << 1) | (query >> 1);
+            let opacity_rises = voxlight_engine::tf::opacity_rise_historygram(&s.tf, tf) != 0;
+            let meeting_query = photon
+                .read_state(engine())
+                .expect("read")
+                .paths
+                .iter()
+                .filter(|p| (p.end_lo as u64 | (p.end_hi as u64) << 32) & widened != 0)
+                .count() as u64;
             let change = Change::tf(&s.tf, tf);
             s.tf = tf.clone();
             photon.apply(engine(), &s, &change).expect("apply");
@@ -206,7 +255,8 @@ fn incremental_tf_edits_equal_a_full_recompute_bit_for_bit() {
             }
             eprintln!(
                 "{spatial:?}, {name}: query {:064b}, retraced {:.1}% of {} paths, {} records changed \
-                 ({} change-list entries), segments {:.1}% ({} from the changes alone)",
+                 ({} change-list entries; {meeting_query} paths meet the query), segments {:.1}% ({} from \
+                 the changes alone)",
                 match &change {
                     Change::Tf {
                         query_historygram, ..
@@ -221,6 +271,16 @@ fn incremental_tf_edits_equal_a_full_recompute_bit_for_bit() {
                 report.segments_delta,
             );
             assert!(report.paths_retraced > 0, "{name}: nothing retraced");
+            if name.contains("thin medium") {
+                // No opacity rose, so a path that only passed through the edited bins without
+                // a collision there is not retraced.
+                assert!(!opacity_rises, "{name}");
+                assert!(
+                    2 * report.paths_retraced < meeting_query,
+                    "{name}: retraced {} of the {meeting_query} paths meeting the query",
+                    report.paths_retraced
+                );
+            }
             if name.starts_with("colour only") {
                 // No opacity changed: every stale segment is updated from the changed photons.
                 assert!(

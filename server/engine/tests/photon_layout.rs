@@ -52,9 +52,10 @@ fn photon_structs_match_wgsl() {
             size_of::<PhotonUniforms>(),
             fields!(PhotonUniforms: grid_dims, cell_count, radius, kernel_norm, majorant,
                 gather_step, photons_per_pass, path_count, record_count, bounces, path_offset,
-                dispatch_paths, mode, segments, query_lo, query_hi, emitter_count, spatial,
-                round_input, round_budget, round_stride, opacity_query_lo, opacity_query_hi,
-                grid_pass, change_capacity, record_capacity),
+                dispatch_paths, mode, segments, rejection_query_lo, rejection_query_hi,
+                emitter_count, spatial, round_input, round_budget, round_stride,
+                opacity_query_lo, opacity_query_hi, grid_pass, change_capacity,
+                record_capacity, collision_query_lo, collision_query_hi, pad0, pad1),
         );
         assert_layout(
             &module,

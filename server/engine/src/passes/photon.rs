@@ -26,8 +26,8 @@ pub struct PhotonUniforms {
     pub dispatch_paths: u32,
     pub mode: u32,
     pub segments: u32,
-    pub query_lo: u32,
-    pub query_hi: u32,
+    pub rejection_query_lo: u32,
+    pub rejection_query_hi: u32,
     pub emitter_count: u32,
     pub spatial: u32,
     pub round_input: u32,
@@ -38,6 +38,10 @@ pub struct PhotonUniforms {
     pub grid_pass: u32,
     pub change_capacity: u32,
     pub record_capacity: u32,
+    pub collision_query_lo: u32,
+    pub collision_query_hi: u32,
+    pub pad0: u32,
+    pub pad1: u32,
 }
 
 /// Matches `PhotonRecord`: one stored photon interaction.

@@ -5,14 +5,18 @@
 //! (photon_grid.wgsl) and gathers every view-ray segment from all photons so far
 //! (photon_gather.wgsl), then composites the segments into the HDR output.
 //!
-//! A TF edit (`Change::Tf`) does not start over: paths whose historygram meets the query
-//! historygram are retraced from their last unaffected interaction, the grid is rebuilt, and
-//! only segments whose own historygram meets the bins whose opacity changed (colour reaches a
-//! segment only through the photons, which carry the albedo), or that a changed photon can reach
-//! (spatial historygram, 3×64 bits; or any change when that option is off), are gathered
-//! again. Because the random numbers of interaction k of path p depend only on (seed, p, k),
-//! the grid orders each cell by record index, and the gather of a segment depends only on its
-//! samples and the photons within reach, the result equals a full recompute bit for bit.
+//! A TF edit (`Change::Tf`) does not start over. Its query historygram is split by what it can
+//! change on a photon path: bins whose opacity rose, where a rejected tentative collision of
+//! delta tracking may become real (tested against the historygram of every point the path's
+//! tracking sampled), and bins whose colour changed or opacity fell, where only a real
+//! collision can change (tested against the bins of the path's collisions). Paths that meet
+//! either are retraced from their last unaffected interaction, and every record that changes
+//! goes to a change list (old and new version). Segments whose own historygram meets the bins
+//! whose opacity changed are gathered again; segments that a changed photon can reach (dirty
+//! cells, the spatial historygram, or any change) subtract the old versions' terms and add the
+//! new ones. Because the random numbers of interaction k of path p depend only on (seed, p, k)
+//! and the gather sums fixed-point integers (whose sum does not depend on order), the result
+//! equals a full recompute bit for bit.
 //!
 //! A camera edit keeps the photons (they do not depend on the camera) and gathers again.
 
@@ -30,7 +34,10 @@ use crate::passes::photon::{
 };
 use crate::scene_gpu::{SceneUniforms, default_step};
 use crate::technique::{StepReport, Technique, TechniqueStats};
-use crate::tf::{TF_LUT_SIZE, bake, opacity_query_historygram, query_historygram};
+use crate::tf::{
+    TF_LUT_SIZE, bake, collision_query_historygram, opacity_query_historygram,
+    opacity_rise_historygram, query_historygram,
+};
 use crate::{Change, Engine, EngineError, GpuVolume, Scene};
 
 /// Parameters of the photon map (the paper's Pn, Sn, Vn and the gather radius).
@@ -135,6 +142,10 @@ struct Dispatch {
 struct Query {
     any: u64,
     opacity: u64,
+    /// Bins whose opacity rose (photon_common.wgsl: rejection_query).
+    rejection: u64,
+    /// Bins whose colour changed or opacity fell (collision_query).
+    collision: u64,
 }
 
 /// What one incremental TF update did.
@@ -586,8 +597,8 @@ impl Photon {
             dispatch_paths: trace_paths.len() as u32,
             mode,
             segments: self.params.segments,
-            query_lo: query.any as u32,
-            query_hi: (query.any >> 32) as u32,
+            rejection_query_lo: query.rejection as u32,
+            rejection_query_hi: (query.rejection >> 32) as u32,
             emitter_count: self.emitter_count,
             spatial: self.params.invalidation.uniform(),
             round_input: round.input,
@@ -598,6 +609,10 @@ impl Photon {
             grid_pass,
             change_capacity: self.budget.change_entries as u32,
             record_capacity: self.budget.records as u32,
+            collision_query_lo: query.collision as u32,
+            collision_query_hi: (query.collision >> 32) as u32,
+            pad0: 0,
+            pad1: 0,
         };
         engine
             .gpu
@@ -868,6 +883,8 @@ impl Photon {
         let query = Query {
             any: widen(query_historygram),
             opacity: widen(opacity_query_historygram(old_tf, &scene.tf)),
+            rejection: widen(opacity_rise_historygram(old_tf, &scene.tf)),
+            collision: widen(collision_query_historygram(old_tf, &scene.tf)),
         };
         if query.any == u64::MAX {
             // Every bin changed: every path would be retraced from its start and most segments
