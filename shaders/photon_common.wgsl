@@ -75,13 +75,18 @@ struct PhotonRecord {
     hist_hi: u32,
 }
 
-// Per path: stored interactions and the historygram of the whole path (including the flight
-// that left the volume), so a path whose end is affected is found by one test.
+// Per path: stored interactions, the historygram of the whole path (including the flight
+// that left the volume) and that of its collisions' data values alone, so that a path the
+// edit affects is found by two tests (trace_mark).
 struct PhotonPath {
     count: u32,
     end_lo: u32,
     end_hi: u32,
+    collisions_lo: u32,
+    collisions_hi: u32,
     pad0: u32,
+    pad1: u32,
+    pad2: u32,
 }
 
 // A light as photons see it. kind: EMIT_DIRECTIONAL (vector = travel direction), EMIT_POINT

@@ -135,21 +135,22 @@ fn trace_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
         return;
     }
     let path = paths[p];
-    var affected = hist_hits_rejection_query(path.end_lo, path.end_hi);
-    for (var j = 0u; j < path.count && !affected; j++) {
-        affected = collision_hits_query(records[p * photon.bounces + j]);
-    }
-    if (affected) {
+    if (hist_hits_rejection_query(path.end_lo, path.end_hi)
+        || hist_hits_collision_query(vec2<u32>(path.collisions_lo, path.collisions_hi))) {
         retrace_list[atomicAdd(&counters[COUNTER_RETRACED], 1u)] = p;
     }
 }
 
-// Whether the edit may change what happened at record r's collision: its albedo, or whether
-// it was one (the collision query). The record's data value is recomputed from its position,
-// the very point the tracker classified.
-fn collision_hits_query(r: PhotonRecord) -> bool {
-    let bit = hist_bit(data_at(r.position));
-    return ((bit.x & photon.collision_query_lo) | (bit.y & photon.collision_query_hi)) != 0u;
+// Whether the edit may change what happened at collisions in these bins: their albedo, or
+// whether they were collisions at all (the collision query).
+fn hist_hits_collision_query(bits: vec2<u32>) -> bool {
+    return ((bits.x & photon.collision_query_lo) | (bits.y & photon.collision_query_hi)) != 0u;
+}
+
+// The bin of record r's collision: its data value recomputed from its position, the very
+// point the tracker classified.
+fn collision_bit(r: PhotonRecord) -> vec2<u32> {
+    return hist_bit(data_at(r.position));
 }
 
 // Opacity at v for delta tracking, interpolated as a weighted sum rather than mix's
@@ -178,6 +179,8 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
 
     var start = -1;
     var old_count = 0u;
+    // The bins of the path's collisions (kept ones, then new ones).
+    var collisions = vec2<u32>(0u);
     if (photon.mode == MODE_UPDATE) {
         let path = paths[p];
         old_count = path.count;
@@ -187,9 +190,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         var j = 0;
         while (j < i32(path.count)) {
             let r = records[base + u32(j)];
-            if (hist_hits_rejection_query(r.hist_lo, r.hist_hi) || collision_hits_query(r)) {
+            let bit = collision_bit(r);
+            if (hist_hits_rejection_query(r.hist_lo, r.hist_hi) || hist_hits_collision_query(bit)) {
                 break;
             }
+            collisions |= bit;
             j += 1;
         }
         start = j - 1;
@@ -249,6 +254,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
                 collided = true;
                 albedo = classify(v).rgb;
                 position = x;
+                collisions |= hist_bit(v);
                 break;
             }
         }
@@ -267,7 +273,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
             store_record(base + r, PhotonRecord(vec3<f32>(0.0), CELL_NONE, vec3<f32>(0.0), 0u, vec3<f32>(0.0), 0u));
         }
     }
-    paths[p] = PhotonPath(count, hist.x, hist.y, 0u);
+    paths[p] = PhotonPath(count, hist.x, hist.y, collisions.x, collisions.y, 0u, 0u, 0u);
 }
 
 fn bounding_radius() -> f32 {

@@ -67,7 +67,8 @@ fn photon_structs_match_wgsl() {
             &module,
             "PhotonPath",
             size_of::<PhotonPath>(),
-            fields!(PhotonPath: count, end_lo, end_hi, pad0),
+            fields!(PhotonPath: count, end_lo, end_hi, collisions_lo, collisions_hi, pad0, pad1,
+                pad2),
         );
         assert_layout(
             &module,

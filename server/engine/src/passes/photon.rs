@@ -63,7 +63,11 @@ pub struct PhotonPath {
     pub count: u32,
     pub end_lo: u32,
     pub end_hi: u32,
+    pub collisions_lo: u32,
+    pub collisions_hi: u32,
     pub pad0: u32,
+    pub pad1: u32,
+    pub pad2: u32,
 }
 
 /// Matches `PhotonEmitter`.
