@@ -8,8 +8,11 @@
 // Randomness is keyed by (seed, path, interaction k): the flight to interaction k and the
 // scattering that starts it draw from rng_new(seed, path, k) only, and the state it starts
 // from (position, direction, power, historygram) is exactly what record k − 1 stores. So
-// MODE_UPDATE can restart a path at its last record whose historygram misses the query and
-// produce bit for bit the path a full trace (MODE_FULL) would. In MODE_UPDATE, `trace_mark`
+// MODE_UPDATE can restart a path after its last record the edit cannot have changed and
+// produce bit for bit the path a full trace (MODE_FULL) would. A record is changed when its
+// flight's historygram meets the rejection query (opacity rose) or its collision's bin, or an
+// earlier one's, meets the collision query (colour changed or opacity fell); see
+// PhotonUniforms. In MODE_UPDATE, `trace_mark`
 // first lists the paths the edit affects, and `main` runs one invocation per listed path: a
 // sparse update then keeps every SIMD lane busy instead of paying for whole batches whose
 // one affected path runs while the others idle.
