@@ -99,15 +99,19 @@ struct PhotonEmitter {
     cdf: f32,
 }
 
-// A photon record that an update replaced (negative = 1: its old version, to subtract) or
-// wrote (negative = 0: its new version, to add); the change grid indexes them.
+// A photon record that an update changed, for the change grid: kind CHANGE_SUBTRACT (its old
+// version), CHANGE_ADD (its new version), or CHANGE_REPLACE where only the power changed (a
+// colour edit's usual case): one entry that subtracts old_power's term and adds power's, so a
+// delta gather visits the photon once.
 struct PhotonChange {
     position: vec3<f32>,
     cell: u32,
     power: vec3<f32>,
-    negative: u32,
+    kind: u32,
     direction: vec3<f32>,
     pad0: u32,
+    old_power: vec3<f32>,
+    pad1: u32,
 }
 
 // A segment's gather between rounds: its radiance so far (fixed point, see fixed_hi), the
@@ -163,6 +167,9 @@ const COUNTER_DELTA: u32 = 12u;
 const COUNTER_DIRTY: u32 = 13u;
 const GRID_RECORDS: u32 = 0u;
 const GRID_CHANGES: u32 = 1u;
+const CHANGE_ADD: u32 = 0u;
+const CHANGE_SUBTRACT: u32 = 1u;
+const CHANGE_REPLACE: u32 = 2u;
 // A gather_list entry with this bit updates its segment by the change grid's photons only.
 const DELTA_SEGMENT: u32 = 0x80000000u;
 const SPATIAL_NONE: u32 = 0u;
@@ -193,7 +200,8 @@ const SPATIAL_CELLS: u32 = 2u;
 @group(0) @binding(13) var<storage, read_write> gather_state: array<GatherState>;
 // The paths an update retraces (COUNTER_RETRACED of them), listed by `trace_mark`.
 @group(0) @binding(14) var<storage, read_write> retrace_list: array<u32>;
-// The records an update changed, old and new versions (COUNTER_CHANGES of them).
+// The records an update changed, old and new versions (or one entry for both where only the
+// power changed; COUNTER_CHANGES of them).
 @group(0) @binding(15) var<storage, read_write> changes: array<PhotonChange>;
 
 fn grid_base(grid: u32) -> u32 {

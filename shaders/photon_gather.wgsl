@@ -154,6 +154,26 @@ fn defer_segment(entry: u32, st: GatherState, segment_count: u32) {
     gather_list[next * segment_count + atomicAdd(&counters[COUNTER_LIST + next], 1u)] = entry;
 }
 
+// A 64-bit fixed-point sum per channel (see fixed_hi).
+struct FixedSum {
+    lo: vec3<u32>,
+    hi: vec3<u32>,
+}
+
+// sum + x or sum − x, with x truncated to fixed point, wrapping (only the final sum is known
+// to be non-negative).
+fn accumulate(sum: FixedSum, x: vec3<f32>, negative: bool) -> FixedSum {
+    let x_hi = fixed_hi(x);
+    let x_lo = fixed_lo(x, x_hi);
+    if (negative) {
+        let borrow = select(vec3<u32>(0u), vec3<u32>(1u), sum.lo < x_lo);
+        return FixedSum(sum.lo - x_lo, sum.hi - x_hi - borrow);
+    }
+    let lo = sum.lo + x_lo;
+    let carry = select(vec3<u32>(0u), vec3<u32>(1u), lo < x_lo);
+    return FixedSum(lo, sum.hi + x_hi + carry);
+}
+
 // What a sample's photons are weighted by: the transmittance to it, the integral of the
 // extinction over its step, the kernel's normalisation, and the fixed point's scale.
 fn sample_weight(transmit: f32, sigma: f32) -> f32 {
@@ -258,13 +278,15 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
                 var position: vec3<f32>;
                 var power: vec3<f32>;
                 var direction: vec3<f32>;
-                var negative = false;
+                var kind = CHANGE_ADD;
+                var old_power = vec3<f32>(0.0);
                 if (grid == GRID_CHANGES) {
                     let change = changes[item];
                     position = change.position;
                     power = change.power;
                     direction = change.direction;
-                    negative = change.negative != 0u;
+                    kind = change.kind;
+                    old_power = change.old_power;
                 } else {
                     let rec = records[item];
                     position = rec.position;
@@ -274,20 +296,15 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
                 let d = x - position;
                 let d2 = dot(d, d);
                 if (d2 < r2) {
-                    let x = power * (weight * phase_hg(dot(direction, out_dir), scene.g) * (1.0 - d2 / r2));
-                    let hi = fixed_hi(x);
-                    let lo = fixed_lo(x, hi);
-                    // 64-bit add or subtract per channel, wrapping (only the final sum is
-                    // known to be non-negative).
-                    if (negative) {
-                        let borrow = select(vec3<u32>(0u), vec3<u32>(1u), st.color_lo < lo);
-                        st.color_lo -= lo;
-                        st.color_hi -= hi + borrow;
-                    } else {
-                        st.color_lo += lo;
-                        let carry = select(vec3<u32>(0u), vec3<u32>(1u), st.color_lo < lo);
-                        st.color_hi += hi + carry;
+                    // A replaced photon's two terms share this factor (same position and
+                    // direction), so they are the very terms two separate visits would give.
+                    let s = weight * phase_hg(dot(direction, out_dir), scene.g) * (1.0 - d2 / r2);
+                    var sum = accumulate(FixedSum(st.color_lo, st.color_hi), power * s, kind == CHANGE_SUBTRACT);
+                    if (kind == CHANGE_REPLACE) {
+                        sum = accumulate(sum, old_power * s, true);
                     }
+                    st.color_lo = sum.lo;
+                    st.color_hi = sum.hi;
                 }
             }
             used += stop - start;

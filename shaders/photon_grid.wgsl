@@ -2,7 +2,7 @@
 // sort: clear, count (atomics), exclusive prefix sum (one workgroup), scatter (atomic cursors).
 // The order within a cell is whatever the atomics give: the gather's fixed-point sums do not
 // depend on it. `grid_pass` picks the grid: the records' (every build), or, in an update, the
-// change list's (the old and new versions of the records it changed). Entry points grid_clear,
+// change list's (the old and new versions of the records it changed, see PhotonChange). Entry points grid_clear,
 // grid_count, grid_scan, grid_scatter.
 // Rust twin: server/engine/src/passes/photon.rs.
 

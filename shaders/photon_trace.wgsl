@@ -60,10 +60,10 @@ fn same_record(a: PhotonRecord, b: PhotonRecord) -> bool {
 
 // Appends a version of a changed record to the change list (dropped past its capacity: the
 // host then sees COUNTER_CHANGES over it and regathers instead).
-fn append_change(r: PhotonRecord, negative: u32) {
+fn append_change(r: PhotonRecord, kind: u32, old_power: vec3<f32>) {
     let slot = atomicAdd(&counters[COUNTER_CHANGES], 1u);
     if (slot < photon.change_capacity) {
-        changes[slot] = PhotonChange(r.position, r.cell, r.power, negative, r.direction, 0u);
+        changes[slot] = PhotonChange(r.position, r.cell, r.power, kind, r.direction, 0u, old_power, 0u);
     }
 }
 
@@ -74,13 +74,20 @@ fn store_record(index: u32, record: PhotonRecord) {
         let old = records[index];
         if (!same_record(old, record)) {
             atomicAdd(&counters[COUNTER_CHANGED], 1u);
-            if (old.cell != CELL_NONE) {
-                mark_spatial(old.position);
-                append_change(old, 1u);
-            }
-            if (record.cell != CELL_NONE) {
+            let moved = any(bitcast<vec3<u32>>(old.position) != bitcast<vec3<u32>>(record.position))
+                || any(bitcast<vec3<u32>>(old.direction) != bitcast<vec3<u32>>(record.direction));
+            if (old.cell != CELL_NONE && record.cell != CELL_NONE && !moved) {
                 mark_spatial(record.position);
-                append_change(record, 0u);
+                append_change(record, CHANGE_REPLACE, old.power);
+            } else {
+                if (old.cell != CELL_NONE) {
+                    mark_spatial(old.position);
+                    append_change(old, CHANGE_SUBTRACT, vec3<f32>(0.0));
+                }
+                if (record.cell != CELL_NONE) {
+                    mark_spatial(record.position);
+                    append_change(record, CHANGE_ADD, vec3<f32>(0.0));
+                }
             }
         }
     }

@@ -288,6 +288,8 @@ fn incremental_tf_edits_equal_a_full_recompute_bit_for_bit() {
                     "{name}: no segment updated by the changes"
                 );
                 assert_eq!(report.segments_delta, report.segments_recomputed, "{name}");
+                // Nothing moved: every changed record is one entry that replaces its power.
+                assert_eq!(report.changes, report.records_changed, "{name}");
             }
             if *local {
                 assert!(

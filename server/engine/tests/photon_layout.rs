@@ -4,10 +4,10 @@
 use std::mem::{offset_of, size_of};
 
 use voxlight_engine::passes::photon::{
-    COUNTER_CHANGED, COUNTER_CHANGES, COUNTER_DELTA, COUNTER_LIST, COUNTER_RETRACED,
-    COUNTER_SEGMENTS, COUNTER_SPATIAL, COUNTER_WORDS, GRID_CHANGES, GRID_RECORDS, GatherState,
-    MODE_FULL, MODE_UPDATE, PhotonChange, PhotonEmitter, PhotonPath, PhotonRecord, PhotonUniforms,
-    SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
+    CHANGE_ADD, CHANGE_REPLACE, CHANGE_SUBTRACT, COUNTER_CHANGED, COUNTER_CHANGES, COUNTER_DELTA,
+    COUNTER_LIST, COUNTER_RETRACED, COUNTER_SEGMENTS, COUNTER_SPATIAL, COUNTER_WORDS, GRID_CHANGES,
+    GRID_RECORDS, GatherState, MODE_FULL, MODE_UPDATE, PhotonChange, PhotonEmitter, PhotonPath,
+    PhotonRecord, PhotonUniforms, SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
 };
 use voxlight_engine::shaders;
 
@@ -80,7 +80,7 @@ fn photon_structs_match_wgsl() {
             &module,
             "PhotonChange",
             size_of::<PhotonChange>(),
-            fields!(PhotonChange: position, cell, power, negative, direction, pad0),
+            fields!(PhotonChange: position, cell, power, kind, direction, pad0, old_power, pad1),
         );
         assert_layout(
             &module,
@@ -130,6 +130,9 @@ fn photon_constants_match_wgsl() {
         ("COUNTER_DELTA", COUNTER_DELTA as u32),
         ("GRID_RECORDS", GRID_RECORDS),
         ("GRID_CHANGES", GRID_CHANGES),
+        ("CHANGE_ADD", CHANGE_ADD),
+        ("CHANGE_SUBTRACT", CHANGE_SUBTRACT),
+        ("CHANGE_REPLACE", CHANGE_REPLACE),
         // The dirty-cell bits start right after the counters.
         ("COUNTER_DIRTY", COUNTER_WORDS as u32),
     ] {

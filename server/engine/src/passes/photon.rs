@@ -80,16 +80,19 @@ pub struct PhotonEmitter {
     pub cdf: f32,
 }
 
-/// Matches `PhotonChange`: a changed record's old (negative = 1) or new version.
+/// Matches `PhotonChange`: a changed record's old version (`CHANGE_SUBTRACT`), new version
+/// (`CHANGE_ADD`), or both where only its power changed (`CHANGE_REPLACE`).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
 pub struct PhotonChange {
     pub position: [f32; 3],
     pub cell: u32,
     pub power: [f32; 3],
-    pub negative: u32,
+    pub kind: u32,
     pub direction: [f32; 3],
     pub pad0: u32,
+    pub old_power: [f32; 3],
+    pub pad1: u32,
 }
 
 /// Matches `Segment`: one view-ray segment (radiance in 64-bit fixed point, 40 fraction bits).
@@ -140,6 +143,10 @@ pub const COUNTER_DELTA: usize = 12;
 /// `grid_pass` uniform: which grid the grid kernels build.
 pub const GRID_RECORDS: u32 = 0;
 pub const GRID_CHANGES: u32 = 1;
+/// `PhotonChange::kind`.
+pub const CHANGE_ADD: u32 = 0;
+pub const CHANGE_SUBTRACT: u32 = 1;
+pub const CHANGE_REPLACE: u32 = 2;
 /// `spatial` uniform: how segments learn of changed photons.
 pub const SPATIAL_NONE: u32 = 0;
 pub const SPATIAL_AXES: u32 = 1;

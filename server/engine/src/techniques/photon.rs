@@ -11,7 +11,7 @@
 //! tracking sampled), and bins whose colour changed or opacity fell, where only a real
 //! collision can change (tested against the bins of the path's collisions). Paths that meet
 //! either are retraced from their last unaffected interaction, and every record that changes
-//! goes to a change list (old and new version). Segments whose own historygram meets the bins
+//! goes to a change list (its old and new version, one entry where only the power changed). Segments whose own historygram meets the bins
 //! whose opacity changed are gathered again; segments that a changed photon can reach (dirty
 //! cells, the spatial historygram, or any change) subtract the old versions' terms and add the
 //! new ones. Because the random numbers of interaction k of path p depend only on (seed, p, k)
@@ -63,7 +63,8 @@ pub struct PhotonParams {
     /// keeps its place for the next; 0 takes the device's loop limit (`Gpu::loop_limit`; one
     /// round where there is none). The result does not depend on it.
     pub gather_budget: u32,
-    /// Entries of the change list (old and new versions of the records an update changes);
+    /// Entries of the change list (old and new versions of the records an update changes, one
+    /// entry for both where only the power changed);
     /// 0 sizes it to the map's records. An update that changes more gathers its photon-stale
     /// segments afresh instead of from the changes alone: the same bits, more work.
     pub change_list: u32,
@@ -160,7 +161,8 @@ pub struct UpdateReport {
     pub segments_recomputed: u64,
     /// Of those, segments updated from the changed photons alone (their opacity unchanged).
     pub segments_delta: u64,
-    /// Entries of the change list (old and new versions of the changed records).
+    /// Entries of the change list (old and new versions of the changed records; one per record
+    /// whose power alone changed).
     pub changes: u64,
     /// Spatial historygram after the update: x, y, z masks.
     pub spatial: [u64; 3],
