@@ -280,8 +280,8 @@ fn grid_cell3(p: vec3<f32>) -> vec3<i32> {
 }
 
 // Dirty-cell grid (SPATIAL_CELLS, and every delta gather): half the hash cell's edge, so that
-// marking every dirty cell within two of a changed photon's covers its gather radius more
-// tightly than whole cells.
+// marking the cells within the gather radius of a changed photon (mark_spatial) covers its
+// reach more tightly than whole cells.
 fn dirty_cell3(p: vec3<f32>) -> vec3<i32> {
     let c = vec3<i32>(floor((p - scene.box_min) / (0.5 * photon.radius)));
     return clamp(c, vec3<i32>(0), vec3<i32>(2u * photon.grid_dims) - 1);

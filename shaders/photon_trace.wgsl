@@ -19,10 +19,11 @@
 // Rust twin: server/engine/src/passes/photon.rs.
 
 // Marks the spatial historygram (3×64 bits) at world position p and the dirty bits of the
-// half-size cells within two of p's (every one a sample within the gather radius of p can lie
-// in: SPATIAL_CELLS finds stale segments by them, and every delta gather skips the samples
-// outside them). A bit already set is not written again (dense edits mark the same cells many
-// times).
+// half-size cells that come within the gather radius of p (of the 5 × 5 × 5 around p's, about
+// two thirds: those whose box lies within the radius, with 1% to spare for rounding), every one a
+// sample within the radius of p can lie in: SPATIAL_CELLS finds stale segments by them, and
+// every delta gather skips the samples outside them. A bit already set is not written again
+// (dense edits mark the same cells many times).
 fn mark_spatial(p: vec3<f32>) {
     let b = spatial_bins(p);
     for (var axis = 0u; axis < 3u; axis++) {
@@ -33,11 +34,15 @@ fn mark_spatial(p: vec3<f32>) {
     {
         let c = dirty_cell3(p);
         let dims = vec3<i32>(2u * photon.grid_dims);
+        let half = 0.5 * photon.radius;
+        let reach = 1.01 * photon.radius;
         for (var dz = -2; dz <= 2; dz++) {
             for (var dy = -2; dy <= 2; dy++) {
                 for (var dx = -2; dx <= 2; dx++) {
                     let n = c + vec3<i32>(dx, dy, dz);
-                    if (all(n >= vec3<i32>(0)) && all(n < dims)) {
+                    let lo = scene.box_min + vec3<f32>(n) * half;
+                    let gap = max(max(lo - p, p - (lo + half)), vec3<f32>(0.0));
+                    if (all(n >= vec3<i32>(0)) && all(n < dims) && dot(gap, gap) <= reach * reach) {
                         let cell = dirty_index(n);
                         let word = COUNTER_DIRTY + cell / 32u;
                         let bit = 1u << (cell % 32u);
