@@ -254,6 +254,18 @@ fn hist_hits_opacity_query(lo: u32, hi: u32) -> bool {
     return ((lo & photon.opacity_query_lo) | (hi & photon.opacity_query_hi)) != 0u;
 }
 
+// Whether the edit may change what happened at collisions in these bins: their albedo, or
+// whether they were collisions at all (the collision query).
+fn hist_hits_collision_query(lo: u32, hi: u32) -> bool {
+    return ((lo & photon.collision_query_lo) | (hi & photon.collision_query_hi)) != 0u;
+}
+
+// Squared distance from p to the cube of edge `edge` whose lowest corner is `lo` (0 inside).
+fn cube_distance2(lo: vec3<f32>, edge: f32, p: vec3<f32>) -> f32 {
+    let gap = max(max(lo - p, p - (lo + vec3<f32>(edge))), vec3<f32>(0.0));
+    return dot(gap, gap);
+}
+
 // Bits first..=last of a 64-bit mask as (lo, hi).
 fn range_mask(first: u32, last: u32) -> vec2<u32> {
     var m = vec2<u32>(0u);

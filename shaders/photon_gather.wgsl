@@ -261,9 +261,7 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
             }
             // A neighbour farther than the radius holds no photon that contributes (about a
             // quarter of the 27 for a uniformly placed sample).
-            let cell_min = scene.box_min + vec3<f32>(n) * photon.radius;
-            let gap = max(max(cell_min - x, x - (cell_min + photon.radius)), vec3<f32>(0.0));
-            if (dot(gap, gap) >= r2) {
+            if (cube_distance2(scene.box_min + vec3<f32>(n) * photon.radius, photon.radius, x) >= r2) {
                 continue;
             }
             let cell = cells_base + grid_index(n);

@@ -40,9 +40,8 @@ fn mark_spatial(p: vec3<f32>) {
             for (var dy = -2; dy <= 2; dy++) {
                 for (var dx = -2; dx <= 2; dx++) {
                     let n = c + vec3<i32>(dx, dy, dz);
-                    let lo = scene.box_min + vec3<f32>(n) * half;
-                    let gap = max(max(lo - p, p - (lo + half)), vec3<f32>(0.0));
-                    if (all(n >= vec3<i32>(0)) && all(n < dims) && dot(gap, gap) <= reach * reach) {
+                    let near = cube_distance2(scene.box_min + vec3<f32>(n) * half, half, p) <= reach * reach;
+                    if (all(n >= vec3<i32>(0)) && all(n < dims) && near) {
                         let cell = dirty_index(n);
                         let word = COUNTER_DIRTY + cell / 32u;
                         let bit = 1u << (cell % 32u);
@@ -56,10 +55,14 @@ fn mark_spatial(p: vec3<f32>) {
     }
 }
 
-fn same_record(a: PhotonRecord, b: PhotonRecord) -> bool {
+// Whether two records are at the same position with the same direction, bit for bit.
+fn same_place(a: PhotonRecord, b: PhotonRecord) -> bool {
     return all(bitcast<vec3<u32>>(a.position) == bitcast<vec3<u32>>(b.position))
-        && all(bitcast<vec3<u32>>(a.power) == bitcast<vec3<u32>>(b.power))
-        && all(bitcast<vec3<u32>>(a.direction) == bitcast<vec3<u32>>(b.direction))
+        && all(bitcast<vec3<u32>>(a.direction) == bitcast<vec3<u32>>(b.direction));
+}
+
+fn same_record(a: PhotonRecord, b: PhotonRecord) -> bool {
+    return same_place(a, b) && all(bitcast<vec3<u32>>(a.power) == bitcast<vec3<u32>>(b.power))
         && a.cell == b.cell && a.hist_lo == b.hist_lo && a.hist_hi == b.hist_hi;
 }
 
@@ -79,9 +82,7 @@ fn store_record(index: u32, record: PhotonRecord) {
         let old = records[index];
         if (!same_record(old, record)) {
             atomicAdd(&counters[COUNTER_CHANGED], 1u);
-            let moved = any(bitcast<vec3<u32>>(old.position) != bitcast<vec3<u32>>(record.position))
-                || any(bitcast<vec3<u32>>(old.direction) != bitcast<vec3<u32>>(record.direction));
-            if (old.cell != CELL_NONE && record.cell != CELL_NONE && !moved) {
+            if (old.cell != CELL_NONE && record.cell != CELL_NONE && same_place(old, record)) {
                 mark_spatial(record.position);
                 append_change(record, CHANGE_REPLACE, old.power);
             } else {
@@ -151,15 +152,9 @@ fn trace_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
     }
     let path = paths[p];
     if (hist_hits_rejection_query(path.end_lo, path.end_hi)
-        || hist_hits_collision_query(vec2<u32>(path.collisions_lo, path.collisions_hi))) {
+        || hist_hits_collision_query(path.collisions_lo, path.collisions_hi)) {
         retrace_list[atomicAdd(&counters[COUNTER_RETRACED], 1u)] = p;
     }
-}
-
-// Whether the edit may change what happened at collisions in these bins: their albedo, or
-// whether they were collisions at all (the collision query).
-fn hist_hits_collision_query(bits: vec2<u32>) -> bool {
-    return ((bits.x & photon.collision_query_lo) | (bits.y & photon.collision_query_hi)) != 0u;
 }
 
 // The bin of record r's collision: its data value recomputed from its position, the very
@@ -206,7 +201,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         while (j < i32(path.count)) {
             let r = records[base + u32(j)];
             let bit = collision_bit(r);
-            if (hist_hits_rejection_query(r.hist_lo, r.hist_hi) || hist_hits_collision_query(bit)) {
+            if (hist_hits_rejection_query(r.hist_lo, r.hist_hi) || hist_hits_collision_query(bit.x, bit.y)) {
                 break;
             }
             collisions |= bit;

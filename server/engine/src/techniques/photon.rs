@@ -11,10 +11,10 @@
 //! tracking sampled), and bins whose colour changed or opacity fell, where only a real
 //! collision can change (tested against the bins of the path's collisions). Paths that meet
 //! either are retraced from their last unaffected interaction, and every record that changes
-//! goes to a change list (its old and new version, one entry where only the power changed). Segments whose own historygram meets the bins
-//! whose opacity changed are gathered again; segments that a changed photon can reach (dirty
-//! cells, the spatial historygram, or any change) subtract the old versions' terms and add the
-//! new ones. Because the random numbers of interaction k of path p depend only on (seed, p, k)
+//! goes to a change list (its old and new version, one entry where only the power changed).
+//! Segments whose own historygram meets the bins whose opacity changed are gathered again;
+//! segments that a changed photon can reach (dirty cells, the spatial historygram, or any
+//! change) subtract the old versions' terms and add the new ones. Because the random numbers of interaction k of path p depend only on (seed, p, k)
 //! and the gather sums fixed-point integers (whose sum does not depend on order), the result
 //! equals a full recompute bit for bit.
 //!
@@ -64,9 +64,9 @@ pub struct PhotonParams {
     /// round where there is none). The result does not depend on it.
     pub gather_budget: u32,
     /// Entries of the change list (old and new versions of the records an update changes, one
-    /// entry for both where only the power changed);
-    /// 0 sizes it to the map's records. An update that changes more gathers its photon-stale
-    /// segments afresh instead of from the changes alone: the same bits, more work.
+    /// entry for both where only the power changed); 0 sizes it to the map's records. An update
+    /// that changes more gathers its photon-stale segments afresh instead of from the changes
+    /// alone: the same bits, more work.
     pub change_list: u32,
 }
 
