@@ -1,7 +1,7 @@
 // Shared pieces of technique `photon` (volumetric photon mapping with historygrams, Jönsson et
 // al. 2012): the bindings every photon pass shares (one layout, server/engine/src/passes/photon.rs),
 // the photon, path and view-ray-segment records, historygram helpers and the medium.
-// Prepended to photon_trace.wgsl, photon_grid.wgsl and photon_gather.wgsl.
+// Prepended to photon_trace.wgsl, photon_grid.wgsl, photon_gather.wgsl and photon_scatter.wgsl.
 
 struct PhotonUniforms {
     // Hash grid: cell edge = gather radius, over the volume box.
@@ -59,8 +59,10 @@ struct PhotonUniforms {
     record_capacity: u32,
     collision_query_lo: u32,
     collision_query_hi: u32,
-    pad0: u32,
-    pad1: u32,
+    // Segments the delta scatter can hold (0: off, every delta segment is gathered from the
+    // change grid) and the lattice samples it keeps per segment (photon_scatter.wgsl).
+    scatter_capacity: u32,
+    scatter_samples: u32,
 }
 
 // A stored photon interaction (a real collision): where, the direction it arrived from (travel
@@ -161,10 +163,16 @@ const COUNTER_SPATIAL: u32 = 3u;
 const COUNTER_LIST: u32 = 9u;
 // Entries an update appended to the change list (more than change_capacity: it overflowed).
 const COUNTER_CHANGES: u32 = 11u;
-// Segments an update recomputed from the change grid alone (DELTA_SEGMENT).
+// Segments an update recomputed from the changes alone (by the change grid, DELTA_SEGMENT, or
+// by the delta scatter).
 const COUNTER_DELTA: u32 = 12u;
+// Segments the delta scatter updates (its slots; past scatter_capacity the rest are gathered).
+const COUNTER_SCATTER: u32 = 13u;
+// Set when a change reaches more pixels than one scatter invocation may visit: the update then
+// gathers every delta segment from the change grid instead (photon_scatter.wgsl).
+const COUNTER_SCATTER_OVERFLOW: u32 = 14u;
 // Dirty-cell bits follow the counters.
-const COUNTER_DIRTY: u32 = 13u;
+const COUNTER_DIRTY: u32 = 15u;
 const GRID_RECORDS: u32 = 0u;
 const GRID_CHANGES: u32 = 1u;
 const CHANGE_ADD: u32 = 0u;
@@ -203,6 +211,19 @@ const SPATIAL_CELLS: u32 = 2u;
 // The records an update changed, old and new versions (or one entry for both where only the
 // power changed; COUNTER_CHANGES of them).
 @group(0) @binding(15) var<storage, read_write> changes: array<PhotonChange>;
+// The delta scatter's state (photon_scatter.wgsl): per segment its slot (SLOT_NONE: not
+// scattered), then per slot SLOT_WORDS words (segment, samples marched, the change sum's lo
+// and hi words), then per slot scatter_samples sample weights (f32 bits, < 0: not gathered).
+@group(0) @binding(16) var<storage, read_write> scatter: array<atomic<u32>>;
+
+const SLOT_NONE: u32 = 0xffffffffu;
+const SLOT_WORDS: u32 = 8u;
+
+// Word w of a delta-scatter slot: 0 its segment, 1 the samples scatter_weights marched, 2..4 and
+// 5..7 the lo and hi words of its sum (rgb).
+fn slot_word(slot: u32, w: u32) -> u32 {
+    return scene.width * scene.height * photon.segments + slot * SLOT_WORDS + w;
+}
 
 fn grid_base(grid: u32) -> u32 {
     return select(0u, 2u * photon.cell_count + 1u, grid == GRID_CHANGES);
@@ -312,4 +333,60 @@ fn grid_index(c: vec3<i32>) -> u32 {
 // Data value at world position p (trilinear, volume.wgsl).
 fn data_at(p: vec3<f32>) -> f32 {
     return sample_volume((p - scene.box_min) / (scene.box_max - scene.box_min));
+}
+
+// Below this transmittance inside a segment its march stops.
+const SEGMENT_T_CUTOFF: f32 = 1e-4;
+
+fn pixel_ray(pixel: u32) -> vec3<f32> {
+    let px = vec2<f32>(f32(pixel % scene.width) + 0.5, f32(pixel / scene.width) + 0.5);
+    return camera_ray_dir(scene, px);
+}
+
+// The box interval [ta, tb) of segment s of a ray that meets the box in hit.
+fn segment_bounds(hit: vec2<f32>, s: u32) -> vec2<f32> {
+    let len = (hit.y - hit.x) / f32(photon.segments);
+    let ta = hit.x + f32(s) * len;
+    var tb = hit.x + f32(s + 1u) * len;
+    if (s + 1u == photon.segments) {
+        tb = hit.y;
+    }
+    return vec2<f32>(ta, tb);
+}
+
+// Lattice index of the first sample that can fall in [ta, tb), less one, so that the
+// membership of a sample is decided by the same comparison in neighbouring segments.
+fn first_lattice_index(hit: vec2<f32>, ta: f32, jitter: f32) -> f32 {
+    return max(0.0, ceil((ta - hit.x) / photon.gather_step - jitter) - 1.0);
+}
+
+fn pixel_jitter(pixel: u32) -> f32 {
+    var rng = rng_new(scene.seed, pixel, 0xffffffffu);
+    return rng_next(&rng);
+}
+
+// A 64-bit fixed-point sum per channel (see fixed_hi).
+struct FixedSum {
+    lo: vec3<u32>,
+    hi: vec3<u32>,
+}
+
+// sum + x or sum − x, with x truncated to fixed point, wrapping (only the final sum is known
+// to be non-negative).
+fn accumulate(sum: FixedSum, x: vec3<f32>, negative: bool) -> FixedSum {
+    let x_hi = fixed_hi(x);
+    let x_lo = fixed_lo(x, x_hi);
+    if (negative) {
+        let borrow = select(vec3<u32>(0u), vec3<u32>(1u), sum.lo < x_lo);
+        return FixedSum(sum.lo - x_lo, sum.hi - x_hi - borrow);
+    }
+    let lo = sum.lo + x_lo;
+    let carry = select(vec3<u32>(0u), vec3<u32>(1u), lo < x_lo);
+    return FixedSum(lo, sum.hi + x_hi + carry);
+}
+
+// What a sample's photons are weighted by: the transmittance to it, the integral of the
+// extinction over its step, the kernel's normalisation, and the fixed point's scale.
+fn sample_weight(transmit: f32, sigma: f32) -> f32 {
+    return transmit * (1.0 - exp(-sigma * photon.gather_step)) / sigma * photon.kernel_norm * FIXED_ONE;
 }

@@ -10,8 +10,9 @@
 // changed photon), whose samples and weights are as before: they are updated by the change
 // grid alone (DELTA_SEGMENT), each changed record's old term subtracted and its new one added,
 // which in integer arithmetic gives the very bits of a full gather at the cost of the changed
-// photons only. Listing them keeps every SIMD lane of the gather busy (a sparse update would
-// otherwise pay for whole idle batches).
+// photons only; while the delta scatter has slots (photon_scatter.wgsl) it takes them instead,
+// from the changed photons' side. Listing them keeps every SIMD lane of the gather busy (a
+// sparse update would otherwise pay for whole idle batches).
 //
 // `gather` counts its loop iterations and, after `round_budget` of them, keeps its place in
 // `gather_state`; the host runs rounds over the segments still listed until none is left. The
@@ -19,9 +20,6 @@
 // iterations in all, and dense cells exceed that.
 // `composite` multiplies the segments front to back.
 // Rust twin: server/engine/src/passes/photon.rs.
-
-// Below this transmittance inside a segment its march stops.
-const SEGMENT_T_CUTOFF: f32 = 1e-4;
 
 // Whether a photon change recorded in the spatial historygram can reach the segment a..b.
 fn spatial_hit(a: vec3<f32>, b: vec3<f32>) -> bool {
@@ -66,38 +64,14 @@ fn dirty(x: vec3<f32>) -> bool {
     return (atomicLoad(&counters[COUNTER_DIRTY + cell / 32u]) & (1u << (cell % 32u))) != 0u;
 }
 
-fn pixel_ray(pixel: u32) -> vec3<f32> {
-    let px = vec2<f32>(f32(pixel % scene.width) + 0.5, f32(pixel / scene.width) + 0.5);
-    return camera_ray_dir(scene, px);
-}
-
-// The box interval [ta, tb) of segment s of a ray that meets the box in hit.
-fn segment_bounds(hit: vec2<f32>, s: u32) -> vec2<f32> {
-    let len = (hit.y - hit.x) / f32(photon.segments);
-    let ta = hit.x + f32(s) * len;
-    var tb = hit.x + f32(s + 1u) * len;
-    if (s + 1u == photon.segments) {
-        tb = hit.y;
-    }
-    return vec2<f32>(ta, tb);
-}
-
-// Lattice index of the first sample that can fall in [ta, tb), less one, so that the
-// membership of a sample is decided by the same comparison in neighbouring segments.
-fn first_lattice_index(hit: vec2<f32>, ta: f32, jitter: f32) -> f32 {
-    return max(0.0, ceil((ta - hit.x) / photon.gather_step - jitter) - 1.0);
-}
-
-fn pixel_jitter(pixel: u32) -> f32 {
-    var rng = rng_new(scene.seed, pixel, 0xffffffffu);
-    return rng_next(&rng);
-}
-
 @compute @workgroup_size(64)
 fn gather_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let id = linear_index(gid, groups);
     if (id >= scene.width * scene.height * photon.segments) {
         return;
+    }
+    if (photon.mode == MODE_UPDATE) {
+        atomicStore(&scatter[id], SLOT_NONE);
     }
     let pixel = id / photon.segments;
     let dir = pixel_ray(pixel);
@@ -111,6 +85,7 @@ fn gather_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let bounds = segment_bounds(hit, id % photon.segments);
     var stale = true;
     var delta = false;
+    var scattered = false;
     var start = GatherState(vec3<u32>(0u), 0.0, vec3<u32>(0u), 1.0, 0u, 0u, NEXT_SAMPLE, 0u);
     if (photon.mode == MODE_UPDATE) {
         let old = segments[id];
@@ -129,6 +104,15 @@ fn gather_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
                 start.color_lo = old.color_lo;
                 start.color_hi = old.color_hi;
                 atomicAdd(&counters[COUNTER_DELTA], 1u);
+                // The delta scatter takes it while it has slots (photon_scatter.wgsl).
+                if (photon.scatter_capacity > 0u) {
+                    let slot = atomicAdd(&counters[COUNTER_SCATTER], 1u);
+                    if (slot < photon.scatter_capacity) {
+                        atomicStore(&scatter[id], slot);
+                        atomicStore(&scatter[slot_word(slot, 0u)], id);
+                        scattered = true;
+                    }
+                }
             }
         }
         if (stale) {
@@ -137,8 +121,11 @@ fn gather_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     }
     if (stale) {
         start.k = first_lattice_index(hit, bounds.x, pixel_jitter(pixel));
+        // Kept for a scattered segment too, in case the scatter overflows.
         gather_state[id] = start;
-        gather_list[atomicAdd(&counters[COUNTER_LIST], 1u)] = select(id, id | DELTA_SEGMENT, delta);
+        if (!scattered) {
+            gather_list[atomicAdd(&counters[COUNTER_LIST], 1u)] = select(id, id | DELTA_SEGMENT, delta);
+        }
     }
 }
 
@@ -152,32 +139,6 @@ fn defer_segment(entry: u32, st: GatherState, segment_count: u32) {
     gather_state[entry & ~DELTA_SEGMENT] = st;
     let next = 1u - photon.round_input;
     gather_list[next * segment_count + atomicAdd(&counters[COUNTER_LIST + next], 1u)] = entry;
-}
-
-// A 64-bit fixed-point sum per channel (see fixed_hi).
-struct FixedSum {
-    lo: vec3<u32>,
-    hi: vec3<u32>,
-}
-
-// sum + x or sum − x, with x truncated to fixed point, wrapping (only the final sum is known
-// to be non-negative).
-fn accumulate(sum: FixedSum, x: vec3<f32>, negative: bool) -> FixedSum {
-    let x_hi = fixed_hi(x);
-    let x_lo = fixed_lo(x, x_hi);
-    if (negative) {
-        let borrow = select(vec3<u32>(0u), vec3<u32>(1u), sum.lo < x_lo);
-        return FixedSum(sum.lo - x_lo, sum.hi - x_hi - borrow);
-    }
-    let lo = sum.lo + x_lo;
-    let carry = select(vec3<u32>(0u), vec3<u32>(1u), lo < x_lo);
-    return FixedSum(lo, sum.hi + x_hi + carry);
-}
-
-// What a sample's photons are weighted by: the transmittance to it, the integral of the
-// extinction over its step, the kernel's normalisation, and the fixed point's scale.
-fn sample_weight(transmit: f32, sigma: f32) -> f32 {
-    return transmit * (1.0 - exp(-sigma * photon.gather_step)) / sigma * photon.kernel_norm * FIXED_ONE;
 }
 
 @compute @workgroup_size(64)

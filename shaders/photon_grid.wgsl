@@ -32,10 +32,6 @@ fn item_cell(i: u32) -> u32 {
 @compute @workgroup_size(64)
 fn grid_clear(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let c = linear_index(gid, groups);
-    if (c == 0u && photon.grid_pass == GRID_RECORDS) {
-        // gather_mark lists afresh after every grid build.
-        atomicStore(&counters[COUNTER_LIST], 0u);
-    }
     if (c < photon.cell_count) {
         atomicStore(&grid_cells[cursor(c)], 0u);
     }

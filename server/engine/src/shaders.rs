@@ -19,6 +19,7 @@ pub const PHOTON_COMMON: &str = include_str!("../../../shaders/photon_common.wgs
 pub const PHOTON_TRACE: &str = include_str!("../../../shaders/photon_trace.wgsl");
 pub const PHOTON_GRID: &str = include_str!("../../../shaders/photon_grid.wgsl");
 pub const PHOTON_GATHER: &str = include_str!("../../../shaders/photon_gather.wgsl");
+pub const PHOTON_SCATTER: &str = include_str!("../../../shaders/photon_scatter.wgsl");
 pub const IRRADIANCE_COMMON: &str = include_str!("../../../shaders/irradiance_common.wgsl");
 pub const IRRADIANCE_RENDER: &str = include_str!("../../../shaders/irradiance_render.wgsl");
 pub const IRRADIANCE_CREATE: &str = include_str!("../../../shaders/irradiance_create.wgsl");
@@ -96,6 +97,12 @@ pub fn photon_gather() -> String {
     [COMMON, VOLUME, SCENE, PHOTON_COMMON, PHOTON_GATHER].concat()
 }
 
+/// The photon delta scatter: an update's changed photons added to the segments they reach
+/// (technique `photon`).
+pub fn photon_scatter() -> String {
+    [COMMON, VOLUME, SCENE, PHOTON_COMMON, PHOTON_SCATTER].concat()
+}
+
 /// The passes of technique `irradiance`: each is the shared pieces, the technique's common
 /// declarations and the pass (`IRRADIANCE_RENDER`, `_CREATE`, `_REQUESTS`, `_UPDATE`,
 /// `_PRIORITY`).
@@ -127,6 +134,7 @@ pub fn all() -> Vec<(&'static str, String)> {
         ("photon_trace", photon_trace()),
         ("photon_grid", photon_grid()),
         ("photon_gather", photon_gather()),
+        ("photon_scatter", photon_scatter()),
         ("tonemap", tonemap()),
         ("manylight_vls", manylight_vls()),
         ("manylight_avsm", manylight_avsm()),

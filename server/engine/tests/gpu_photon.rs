@@ -58,6 +58,7 @@ fn params(invalidation: Invalidation) -> PhotonParams {
         invalidation,
         gather_budget: 0,
         change_list: 0,
+        ..PhotonParams::default()
     }
 }
 
@@ -223,12 +224,21 @@ fn incremental_tf_edits_equal_a_full_recompute_bit_for_bit() {
             false,
         ),
     ];
-    for spatial in [
-        Invalidation::DirtyCells,
-        Invalidation::SpatialHistogram,
-        Invalidation::AnyPhoton,
-    ] {
-        let p = params(spatial);
+    // The default (dirty cells, delta scatter), the same with every delta segment gathered from
+    // the change grid, and the other segment tests.
+    let configurations = [
+        ("dirty cells", params(Invalidation::DirtyCells)),
+        (
+            "dirty cells, no scatter",
+            PhotonParams {
+                scatter_bytes: 0,
+                ..params(Invalidation::DirtyCells)
+            },
+        ),
+        ("spatial 3x64", params(Invalidation::SpatialHistogram)),
+        ("any photon", params(Invalidation::AnyPhoton)),
+    ];
+    for (spatial, p) in configurations {
         let mut s = cornell_scene(size, cornell_tf(|_, _, _| {}));
         let mut photon = Photon::new(engine(), volume.clone(), &s, p).expect("photon");
         converge(&mut photon, &s);
@@ -251,12 +261,12 @@ fn incremental_tf_edits_equal_a_full_recompute_bit_for_bit() {
             let incremental = photon.read_state(engine()).expect("read");
             let full = full_recompute(&volume, &s, p);
             if let Some(diff) = first_difference(&incremental, &full) {
-                panic!("{spatial:?}, edit `{name}`: incremental != full: {diff}");
+                panic!("{spatial}, edit `{name}`: incremental != full: {diff}");
             }
             eprintln!(
-                "{spatial:?}, {name}: query {:064b}, retraced {:.1}% of {} paths, {} records changed \
+                "{spatial}, {name}: query {:064b}, retraced {:.1}% of {} paths, {} records changed \
                  ({} change-list entries; {meeting_query} paths meet the query), segments {:.1}% ({} from \
-                 the changes alone)",
+                 the changes alone, {} by the scatter)",
                 match &change {
                     Change::Tf {
                         query_historygram, ..
@@ -269,6 +279,7 @@ fn incremental_tf_edits_equal_a_full_recompute_bit_for_bit() {
                 report.changes,
                 report.segments_recomputed_pct(),
                 report.segments_delta,
+                report.segments_scattered,
             );
             assert!(report.paths_retraced > 0, "{name}: nothing retraced");
             if name.contains("thin medium") {
@@ -288,6 +299,13 @@ fn incremental_tf_edits_equal_a_full_recompute_bit_for_bit() {
                     "{name}: no segment updated by the changes"
                 );
                 assert_eq!(report.segments_delta, report.segments_recomputed, "{name}");
+                // The scatter takes them all (it has room), or none where it is off.
+                let scattered = if p.scatter_bytes > 0 {
+                    report.segments_delta
+                } else {
+                    0
+                };
+                assert_eq!(report.segments_scattered, scattered, "{spatial}, {name}");
                 // Nothing moved: every changed record is one entry that replaces its power.
                 assert_eq!(report.changes, report.records_changed, "{name}");
             }
@@ -514,6 +532,61 @@ fn an_overflowing_change_list_still_equals_a_full_recompute() {
     let full = full_recompute(&volume, &s, p);
     if let Some(diff) = first_difference(&inc, &full) {
         panic!("incremental != full: {diff}");
+    }
+}
+
+/// The delta scatter's two ways out are exact too: with room for fewer segments than an edit
+/// changes, the rest are gathered from the change grid; where a change reaches more pixels than
+/// one invocation may visit (here a tiny loop budget), every delta segment is gathered instead.
+#[test]
+fn delta_scatter_capacity_and_overflow_still_equal_a_full_recompute() {
+    let volume = engine()
+        .upload_volume(&voxlight_volumes::phantom("cornell", 32).expect("cornell"))
+        .expect("upload");
+    let base = cornell_scene(40, cornell_tf(|_, _, _| {}));
+    let tf = cornell_tf(|n, c, _| {
+        if n == "sphere" {
+            *c = [0.9, 0.1, 0.1];
+        }
+    });
+    let defaults = params(Invalidation::DirtyCells);
+    let segments = 40 * 40 * defaults.segments as u64;
+    // The slot map (4 bytes per segment) and room for a few dozen segments.
+    let few_slots = PhotonParams {
+        scatter_bytes: segments * 4 + 40 * 4 * 40,
+        ..defaults
+    };
+    let overflowing = PhotonParams {
+        gather_budget: 100,
+        ..defaults
+    };
+    for (name, p) in [("few slots", few_slots), ("overflow", overflowing)] {
+        let mut s = base.clone();
+        let mut photon = Photon::new(engine(), volume.clone(), &s, p).expect("photon");
+        converge(&mut photon, &s);
+        let change = Change::tf(&s.tf, &tf);
+        s.tf = tf.clone();
+        photon.apply(engine(), &s, &change).expect("apply");
+        let report = photon.last_update().expect("report");
+        eprintln!(
+            "{name}: {} segments from the changes, {} by the scatter",
+            report.segments_delta, report.segments_scattered
+        );
+        assert!(report.segments_delta > 0, "{name}");
+        if name == "few slots" {
+            assert!(report.segments_scattered > 0, "{name}: nothing scattered");
+            assert!(
+                report.segments_scattered < report.segments_delta,
+                "{name}: the scatter had room for all"
+            );
+        } else {
+            assert_eq!(report.segments_scattered, 0, "{name}: the scatter was used");
+        }
+        let inc = photon.read_state(engine()).expect("read");
+        let full = full_recompute(&volume, &s, p);
+        if let Some(diff) = first_difference(&inc, &full) {
+            panic!("{name}: incremental != full: {diff}");
+        }
     }
 }
 

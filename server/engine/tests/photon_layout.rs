@@ -5,9 +5,10 @@ use std::mem::{offset_of, size_of};
 
 use voxlight_engine::passes::photon::{
     CHANGE_ADD, CHANGE_REPLACE, CHANGE_SUBTRACT, COUNTER_CHANGED, COUNTER_CHANGES, COUNTER_DELTA,
-    COUNTER_LIST, COUNTER_RETRACED, COUNTER_SEGMENTS, COUNTER_SPATIAL, COUNTER_WORDS, GRID_CHANGES,
-    GRID_RECORDS, GatherState, MODE_FULL, MODE_UPDATE, PhotonChange, PhotonEmitter, PhotonPath,
-    PhotonRecord, PhotonUniforms, SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
+    COUNTER_LIST, COUNTER_RETRACED, COUNTER_SCATTER, COUNTER_SCATTER_OVERFLOW, COUNTER_SEGMENTS,
+    COUNTER_SPATIAL, COUNTER_WORDS, GRID_CHANGES, GRID_RECORDS, GatherState, MODE_FULL,
+    MODE_UPDATE, PhotonChange, PhotonEmitter, PhotonPath, PhotonRecord, PhotonUniforms, SLOT_WORDS,
+    SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
 };
 use voxlight_engine::shaders;
 
@@ -43,6 +44,7 @@ fn photon_structs_match_wgsl() {
         ("photon_trace", shaders::photon_trace()),
         ("photon_grid", shaders::photon_grid()),
         ("photon_gather", shaders::photon_gather()),
+        ("photon_scatter", shaders::photon_scatter()),
     ] {
         let module = naga::front::wgsl::parse_str(&source)
             .unwrap_or_else(|e| panic!("{name}: {}", e.emit_to_string(&source)));
@@ -55,7 +57,8 @@ fn photon_structs_match_wgsl() {
                 dispatch_paths, mode, segments, rejection_query_lo, rejection_query_hi,
                 emitter_count, spatial, round_input, round_budget, round_stride,
                 opacity_query_lo, opacity_query_hi, grid_pass, change_capacity,
-                record_capacity, collision_query_lo, collision_query_hi, pad0, pad1),
+                record_capacity, collision_query_lo, collision_query_hi, scatter_capacity,
+                scatter_samples),
         );
         assert_layout(
             &module,
@@ -128,6 +131,9 @@ fn photon_constants_match_wgsl() {
         ("COUNTER_LIST", COUNTER_LIST as u32),
         ("COUNTER_CHANGES", COUNTER_CHANGES as u32),
         ("COUNTER_DELTA", COUNTER_DELTA as u32),
+        ("COUNTER_SCATTER", COUNTER_SCATTER as u32),
+        ("COUNTER_SCATTER_OVERFLOW", COUNTER_SCATTER_OVERFLOW as u32),
+        ("SLOT_WORDS", SLOT_WORDS as u32),
         ("GRID_RECORDS", GRID_RECORDS),
         ("GRID_CHANGES", GRID_CHANGES),
         ("CHANGE_ADD", CHANGE_ADD),

@@ -1,6 +1,9 @@
 //! The passes of technique `photon` (shaders/photon_*.wgsl): photon tracing
 //! (`photon_trace.wgsl`: mark the paths an update retraces, trace), the hash-grid build
-//! (`photon_grid.wgsl`: clear, count, scan, scatter; of the records or of an update's changes) and gathering + compositing (`photon_gather.wgsl`: mark, gather in rounds, composite). All share one binding layout
+//! (`photon_grid.wgsl`: clear, count, scan, scatter; of the records or of an update's changes),
+//! gathering + compositing (`photon_gather.wgsl`: mark, gather in rounds, composite) and the
+//! delta scatter of an update's changes (`photon_scatter.wgsl`: weights, changes, apply,
+//! fallback). All share one binding layout
 //! (declared once in `photon_common.wgsl`) and the `#[repr(C)]` records below.
 
 use bytemuck::{Pod, Zeroable};
@@ -40,8 +43,8 @@ pub struct PhotonUniforms {
     pub record_capacity: u32,
     pub collision_query_lo: u32,
     pub collision_query_hi: u32,
-    pub pad0: u32,
-    pub pad1: u32,
+    pub scatter_capacity: u32,
+    pub scatter_samples: u32,
 }
 
 /// Matches `PhotonRecord`: one stored photon interaction.
@@ -129,9 +132,9 @@ pub const EMIT_DIRECTIONAL: u32 = 0;
 pub const EMIT_POINT: u32 = 1;
 pub const EMIT_ENVIRONMENT: u32 = 2;
 /// `counters` words: retraced paths, changed records, recomputed segments, spatial 3×2,
-/// listed segments (2), change-list entries, segments updated from the changes alone; the
-/// dirty-cell bits follow.
-pub const COUNTER_WORDS: usize = 13;
+/// listed segments (2), change-list entries, segments updated from the changes alone, delta
+/// scatter slots taken, delta scatter overflows; the dirty-cell bits follow.
+pub const COUNTER_WORDS: usize = 15;
 pub const COUNTER_RETRACED: usize = 0;
 pub const COUNTER_CHANGED: usize = 1;
 pub const COUNTER_SEGMENTS: usize = 2;
@@ -140,6 +143,10 @@ pub const COUNTER_SPATIAL: usize = 3;
 pub const COUNTER_LIST: usize = 9;
 pub const COUNTER_CHANGES: usize = 11;
 pub const COUNTER_DELTA: usize = 12;
+pub const COUNTER_SCATTER: usize = 13;
+pub const COUNTER_SCATTER_OVERFLOW: usize = 14;
+/// Words per delta-scatter slot (photon_scatter.wgsl).
+pub const SLOT_WORDS: usize = 8;
 /// `grid_pass` uniform: which grid the grid kernels build.
 pub const GRID_RECORDS: u32 = 0;
 pub const GRID_CHANGES: u32 = 1;
@@ -166,6 +173,10 @@ pub struct PhotonPass {
     pub gather_mark: wgpu::ComputePipeline,
     pub gather: wgpu::ComputePipeline,
     pub composite: wgpu::ComputePipeline,
+    pub scatter_weights: wgpu::ComputePipeline,
+    pub scatter_changes: wgpu::ComputePipeline,
+    pub scatter_apply: wgpu::ComputePipeline,
+    pub scatter_fallback: wgpu::ComputePipeline,
 }
 
 /// The buffers and texture of one session.
@@ -184,6 +195,7 @@ pub struct PhotonBindings<'a> {
     pub gather_state: &'a wgpu::Buffer,
     pub retrace_list: &'a wgpu::Buffer,
     pub changes: &'a wgpu::Buffer,
+    pub scatter: &'a wgpu::Buffer,
     pub accum: &'a wgpu::Buffer,
     pub counters: &'a wgpu::Buffer,
 }
@@ -210,6 +222,7 @@ impl PhotonPass {
                 storage_entry(13, false),
                 storage_entry(14, false),
                 storage_entry(15, false),
+                storage_entry(16, false),
             ],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -226,6 +239,7 @@ impl PhotonPass {
         let trace = module("photon trace", crate::shaders::photon_trace());
         let grid = module("photon grid", crate::shaders::photon_grid());
         let gather = module("photon gather", crate::shaders::photon_gather());
+        let scatter = module("photon scatter", crate::shaders::photon_scatter());
         let pipeline = |label: &str, module: &wgpu::ShaderModule, entry: &str| {
             device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some(label),
@@ -246,6 +260,10 @@ impl PhotonPass {
             gather_mark: pipeline("photon gather mark", &gather, "gather_mark"),
             gather: pipeline("photon gather", &gather, "gather"),
             composite: pipeline("photon composite", &gather, "composite"),
+            scatter_weights: pipeline("photon scatter weights", &scatter, "scatter_weights"),
+            scatter_changes: pipeline("photon scatter changes", &scatter, "scatter_changes"),
+            scatter_apply: pipeline("photon scatter apply", &scatter, "scatter_apply"),
+            scatter_fallback: pipeline("photon scatter fallback", &scatter, "scatter_fallback"),
             layout,
         }
     }
@@ -267,6 +285,7 @@ impl PhotonPass {
             (13, b.gather_state),
             (14, b.retrace_list),
             (15, b.changes),
+            (16, b.scatter),
         ];
         let mut entries: Vec<wgpu::BindGroupEntry> = buffers
             .iter()

@@ -27,10 +27,11 @@ use voxlight_protocol::{Light, TransferFunction};
 
 use crate::passes::photon::{
     COUNTER_CHANGED, COUNTER_CHANGES, COUNTER_DELTA, COUNTER_LIST, COUNTER_RETRACED,
-    COUNTER_SEGMENTS, COUNTER_SPATIAL, COUNTER_WORDS, EMIT_DIRECTIONAL, EMIT_ENVIRONMENT,
-    EMIT_POINT, GRID_CHANGES, GRID_RECORDS, GatherState, MODE_FULL, MODE_UPDATE, PhotonBindings,
-    PhotonChange, PhotonEmitter, PhotonPass, PhotonPath, PhotonRecord, PhotonUniforms,
-    SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment, dispatch_linear, dispatch_single,
+    COUNTER_SCATTER, COUNTER_SCATTER_OVERFLOW, COUNTER_SEGMENTS, COUNTER_SPATIAL, COUNTER_WORDS,
+    EMIT_DIRECTIONAL, EMIT_ENVIRONMENT, EMIT_POINT, GRID_CHANGES, GRID_RECORDS, GatherState,
+    MODE_FULL, MODE_UPDATE, PhotonBindings, PhotonChange, PhotonEmitter, PhotonPass, PhotonPath,
+    PhotonRecord, PhotonUniforms, SLOT_WORDS, SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
+    dispatch_linear, dispatch_single,
 };
 use crate::scene_gpu::{SceneUniforms, default_step};
 use crate::technique::{StepReport, Technique, TechniqueStats};
@@ -68,6 +69,11 @@ pub struct PhotonParams {
     /// that changes more gathers its photon-stale segments afresh instead of from the changes
     /// alone: the same bits, more work.
     pub change_list: u32,
+    /// Bytes the delta scatter may take (a slot per segment, and per segment it updates that
+    /// segment's sample weights); 0 turns it off, and every segment an update changes by its
+    /// photons alone is gathered from the change grid instead. The result does not depend on
+    /// it: segments past its capacity are gathered.
+    pub scatter_bytes: u64,
 }
 
 /// How segments detect changed photons after a TF edit.
@@ -115,6 +121,7 @@ impl Default for PhotonParams {
             invalidation: Invalidation::DirtyCells,
             gather_budget: 0,
             change_list: 0,
+            scatter_bytes: 64 << 20,
         }
     }
 }
@@ -161,6 +168,9 @@ pub struct UpdateReport {
     pub segments_recomputed: u64,
     /// Of those, segments updated from the changed photons alone (their opacity unchanged).
     pub segments_delta: u64,
+    /// Of those, segments the delta scatter updated (the rest were gathered from the change
+    /// grid: past its capacity, or all of them where a change reached too many pixels).
+    pub segments_scattered: u64,
     /// Entries of the change list (old and new versions of the changed records; one per record
     /// whose power alone changed).
     pub changes: u64,
@@ -214,6 +224,11 @@ pub struct PhotonBudget {
     pub change_entries: u64,
     /// The records an update changed, old and new versions (its change grid's items).
     pub change_bytes: u64,
+    /// Segments the delta scatter can update per update (0: off) and the lattice samples it
+    /// keeps per segment.
+    pub scatter_capacity: u64,
+    pub scatter_samples: u64,
+    pub scatter_bytes: u64,
     pub accum_bytes: u64,
     /// Counters plus one dirty bit per grid cell.
     pub counter_bytes: u64,
@@ -273,6 +288,24 @@ impl PhotonBudget {
         let gather_list_bytes = 2 * pixels * params.segments as u64 * 4;
         let gather_state_bytes = pixels * params.segments as u64 * size_of::<GatherState>() as u64;
         let retrace_list_bytes = paths * 4;
+        let segment_count = pixels * params.segments as u64;
+        // A segment spans at most the box diagonal / Vn; its first lattice index is one early,
+        // and rounding may add one more at each end.
+        let step = voxel * params.gather_step_voxels;
+        let diagonal = volume.extent.iter().map(|e| e * e).sum::<f32>().sqrt();
+        let scatter_samples = (diagonal / (params.segments as f32 * step)).ceil() as u64 + 4;
+        let scatter_words = params.scatter_bytes / 4;
+        let scatter_capacity = scatter_words
+            .saturating_sub(segment_count)
+            .checked_div(SLOT_WORDS as u64 + scatter_samples)
+            .unwrap_or(0)
+            .min(segment_count)
+            .min(u32::MAX as u64 / 2);
+        let scatter_bytes = if scatter_capacity == 0 {
+            16
+        } else {
+            (segment_count + scatter_capacity * (SLOT_WORDS as u64 + scatter_samples)) * 4
+        };
         let accum_bytes = pixels * 16;
         // The dirty-cell bits are of half-size cells: 8 per hash cell.
         let counter_bytes = (COUNTER_WORDS as u64 + (8 * cells).div_ceil(32)) * 4;
@@ -290,6 +323,7 @@ impl PhotonBudget {
             + gather_state_bytes
             + retrace_list_bytes
             + change_bytes
+            + scatter_bytes
             + accum_bytes
             + small;
         Ok(Self {
@@ -308,6 +342,9 @@ impl PhotonBudget {
             retrace_list_bytes,
             change_entries,
             change_bytes,
+            scatter_capacity,
+            scatter_samples,
+            scatter_bytes,
             accum_bytes,
             counter_bytes,
             total,
@@ -330,6 +367,7 @@ impl PhotonBudget {
             self.gather_state_bytes,
             self.retrace_list_bytes,
             self.change_bytes,
+            self.scatter_bytes,
             self.accum_bytes,
             self.counter_bytes,
         ]
@@ -385,6 +423,8 @@ pub struct Photon {
     last_update: Option<UpdateReport>,
     /// Gather rounds the last grid and gather took.
     gather_rounds: u32,
+    /// Segments the last update's delta scatter updated.
+    scattered: u32,
 }
 
 impl Photon {
@@ -444,6 +484,7 @@ impl Photon {
         let gather_state = buffer("photon gather state", budget.gather_state_bytes, U::STORAGE);
         let retrace_list = buffer("photon retrace list", budget.retrace_list_bytes, U::STORAGE);
         let changes = buffer("photon changes", budget.change_bytes, U::STORAGE);
+        let scatter = buffer("photon scatter", budget.scatter_bytes, U::STORAGE);
         let accum = buffer("photon accum", budget.accum_bytes, U::STORAGE | U::COPY_SRC);
         let counters = buffer(
             "photon counters",
@@ -467,6 +508,7 @@ impl Photon {
                 gather_state: &gather_state,
                 retrace_list: &retrace_list,
                 changes: &changes,
+                scatter: &scatter,
                 accum: &accum,
                 counters: &counters,
             },
@@ -495,6 +537,7 @@ impl Photon {
             photons_traced: 0,
             last_update: None,
             gather_rounds: 0,
+            scattered: 0,
         };
         technique.write_tf(engine, scene);
         technique.write_emitters(engine, scene);
@@ -613,8 +656,8 @@ impl Photon {
             record_capacity: self.budget.records as u32,
             collision_query_lo: query.collision as u32,
             collision_query_hi: (query.collision >> 32) as u32,
-            pad0: 0,
-            pad1: 0,
+            scatter_capacity: self.budget.scatter_capacity as u32,
+            scatter_samples: self.budget.scatter_samples as u32,
         };
         engine
             .gpu
@@ -677,15 +720,54 @@ impl Photon {
         let records = self.passes * self.params.photons_per_pass * self.params.bounces;
         let pixels = self.width * self.height;
         let segments = pixels * self.params.segments;
-        let grids: &[(u32, u32)] = if mode == MODE_UPDATE {
-            &[
-                (GRID_RECORDS, records),
-                (GRID_CHANGES, self.budget.change_entries as u32),
-            ]
-        } else {
-            &[(GRID_RECORDS, records)]
-        };
-        for &(grid, items) in grids {
+        let lane_budget = self.round_budget(engine);
+        let mut grids = vec![GRID_RECORDS];
+        let mut encoder = Self::encoder(engine, "photon gather mark");
+        self.write_uniforms(
+            engine,
+            scene,
+            query,
+            Dispatch {
+                mode,
+                ..Dispatch::default()
+            },
+        );
+        // gather_mark lists afresh.
+        engine.gpu.queue.write_buffer(
+            &self.counters,
+            COUNTER_LIST as u64 * 4,
+            bytemuck::bytes_of(&0u32),
+        );
+        dispatch_linear(
+            &mut encoder,
+            "photon gather mark",
+            &pass.gather_mark,
+            bg,
+            segments,
+        );
+        engine.gpu.queue.submit([encoder.finish()]);
+        if mode == MODE_UPDATE {
+            let words = self.counter_words(engine)?;
+            let slots = words[COUNTER_SCATTER].min(self.budget.scatter_capacity as u32);
+            let mut gathered_from_changes = words[COUNTER_DELTA] - slots;
+            self.scattered = slots;
+            if slots > 0 {
+                let changes = words[COUNTER_CHANGES];
+                if self.scatter(engine, scene, query, slots, changes, lane_budget)? {
+                    gathered_from_changes = words[COUNTER_DELTA];
+                    self.scattered = 0;
+                }
+            }
+            if gathered_from_changes > 0 {
+                grids.push(GRID_CHANGES);
+            }
+        }
+        for grid in grids {
+            let items = if grid == GRID_RECORDS {
+                records
+            } else {
+                self.budget.change_entries as u32
+            };
             let dispatch = Dispatch {
                 mode,
                 grid_pass: grid,
@@ -694,19 +776,9 @@ impl Photon {
             self.write_uniforms(engine, scene, query, dispatch);
             let mut encoder = Self::encoder(engine, "photon grid");
             self.build_grid(&mut encoder, pass, items);
-            if grid == GRID_RECORDS {
-                dispatch_linear(
-                    &mut encoder,
-                    "photon gather mark",
-                    &pass.gather_mark,
-                    bg,
-                    segments,
-                );
-            }
             engine.gpu.queue.submit([encoder.finish()]);
         }
         let mut listed = self.counter(engine, COUNTER_LIST)?;
-        let lane_budget = self.round_budget(engine);
         let lanes = engine.gpu.info.subgroup_max_size.clamp(1, 64);
         let mut rounds = 0;
         let mut input = 0;
@@ -763,6 +835,71 @@ impl Photon {
         );
         engine.gpu.queue.submit([encoder.finish()]);
         Ok(())
+    }
+
+    /// The delta scatter (photon_scatter.wgsl) over the `slots` segments gather_mark gave it and
+    /// the update's change list: the slots' sample weights, every change's terms, then either
+    /// the sums added to their segments or, where a change reached more pixels than one
+    /// invocation may visit, every slot's segment listed for the delta gather instead (one
+    /// blocking read). Returns whether it fell back so.
+    fn scatter(
+        &self,
+        engine: &Engine,
+        scene: &Scene,
+        query: Query,
+        slots: u32,
+        changes: u32,
+        lane_budget: u32,
+    ) -> Result<bool, EngineError> {
+        let pass = &engine.photon;
+        let bg = &self.bind_group;
+        let dispatch = Dispatch {
+            mode: MODE_UPDATE,
+            round: Round {
+                budget: lane_budget,
+                ..Round::default()
+            },
+            ..Dispatch::default()
+        };
+        self.write_uniforms(engine, scene, query, dispatch);
+        let changes = changes.min(self.budget.change_entries as u32);
+        let mut encoder = Self::encoder(engine, "photon scatter");
+        dispatch_linear(
+            &mut encoder,
+            "photon scatter weights",
+            &pass.scatter_weights,
+            bg,
+            slots,
+        );
+        dispatch_linear(
+            &mut encoder,
+            "photon scatter changes",
+            &pass.scatter_changes,
+            bg,
+            changes,
+        );
+        engine.gpu.queue.submit([encoder.finish()]);
+        let overflow = self.counter(engine, COUNTER_SCATTER_OVERFLOW)? > 0;
+        let (label, pipeline) = if overflow {
+            ("photon scatter fallback", &pass.scatter_fallback)
+        } else {
+            ("photon scatter apply", &pass.scatter_apply)
+        };
+        let mut encoder = Self::encoder(engine, label);
+        dispatch_linear(&mut encoder, label, pipeline, bg, slots);
+        engine.gpu.queue.submit([encoder.finish()]);
+        Ok(overflow)
+    }
+
+    /// The counter words (not the dirty bits; blocks on the GPU).
+    fn counter_words(&self, engine: &Engine) -> Result<Vec<u32>, EngineError> {
+        let bytes = engine
+            .gpu
+            .read_buffer_range(&self.counters, 0, (COUNTER_WORDS * 4) as u64)?;
+        Ok(bytes
+            .chunks_exact(4)
+            .map(bytemuck::pod_read_unaligned::<u32>)
+            .collect())
     }
 
     /// Lists the paths whose historygram meets the query (`trace_mark`) and returns how many
@@ -927,6 +1064,7 @@ impl Photon {
             segments,
             segments_recomputed: words[COUNTER_SEGMENTS] as u64,
             segments_delta: words[COUNTER_DELTA] as u64,
+            segments_scattered: self.scattered as u64,
             changes: words[COUNTER_CHANGES] as u64,
             spatial: [mask(0), mask(1), mask(2)],
         };

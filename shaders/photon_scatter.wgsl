@@ -1,0 +1,274 @@
+// Technique `photon`, pass 4: the delta scatter. After a TF edit, a segment whose opacity did
+// not change but that a changed photon can reach (gather_mark's delta segments) differs from
+// before only by the changed photons' terms. The delta gather (photon_gather.wgsl) finds them
+// from the segment's side: every dirty sample visits the change grid's 27 cells, and most of
+// what it visits lies beyond the radius. The scatter goes from the photon's side instead:
+//
+// - `scatter_weights` marches each slot's segment once, exactly as the gather does, and keeps
+//   each lattice sample's weight (sample_weight; −1 where the gather takes no photons: σ = 0,
+//   before the segment or past its transmittance cut-off);
+// - `scatter_changes` runs one invocation per change-list entry: the pixels whose rays can pass
+//   within the radius (the projection of the photon's cube), on each ray the lattice samples
+//   within the radius, and for each the term the gather would form (the same expressions on
+//   the same bits), summed per segment in 64-bit fixed point and added to the slot's sum with
+//   two 32-bit atomics and a carry. Integer sums do not depend on order, so segment + sum is bit
+//   for bit what a gather gives;
+// - `scatter_apply` adds each slot's sum to its segment.
+//
+// A change whose pixels would take more loop iterations than one invocation may run (llvmpipe
+// ends loops silently past its limit) sets COUNTER_SCATTER_OVERFLOW instead; the host then
+// runs `scatter_fallback`, which lists every slot's segment for the delta gather, and no sum is
+// applied. Segments past scatter_capacity are gathered as before (gather_mark).
+// Rust twin: server/engine/src/passes/photon.rs.
+
+fn weight_word(slot: u32, j: u32) -> u32 {
+    return slot_word(photon.scatter_capacity, 0u) + slot * photon.scatter_samples + j;
+}
+
+fn scatter_slots() -> u32 {
+    return min(atomicLoad(&counters[COUNTER_SCATTER]), photon.scatter_capacity);
+}
+
+@compute @workgroup_size(64)
+fn scatter_weights(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let slot = linear_index(gid, groups);
+    if (slot >= scatter_slots()) {
+        return;
+    }
+    let id = atomicLoad(&scatter[slot_word(slot, 0u)]);
+    let pixel = id / photon.segments;
+    let dir = pixel_ray(pixel);
+    let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
+    let bounds = segment_bounds(hit, id % photon.segments);
+    let jitter = pixel_jitter(pixel);
+    // The gather's march (photon_gather.wgsl), sample for sample.
+    var k = first_lattice_index(hit, bounds.x, jitter);
+    var transmit = 1.0;
+    var j = 0u;
+    loop {
+        let t = hit.x + (k + jitter) * photon.gather_step;
+        var weight = -1.0;
+        if (t >= bounds.x) {
+            if (t >= bounds.y || transmit < SEGMENT_T_CUTOFF) {
+                break;
+            }
+            let x = scene.eye + dir * t;
+            let sigma = classify(data_at(x)).a * scene.density_scale;
+            if (sigma > 0.0) {
+                weight = sample_weight(transmit, sigma);
+                transmit *= exp(-sigma * photon.gather_step);
+            }
+        }
+        if (j >= photon.scatter_samples) {
+            // More samples than the host sized for: gather instead.
+            atomicAdd(&counters[COUNTER_SCATTER_OVERFLOW], 1u);
+            break;
+        }
+        atomicStore(&scatter[weight_word(slot, j)], bitcast<u32>(weight));
+        j += 1u;
+        k += 1.0;
+    }
+    atomicStore(&scatter[slot_word(slot, 1u)], j);
+    for (var w = 2u; w < SLOT_WORDS; w++) {
+        atomicStore(&scatter[slot_word(slot, w)], 0u);
+    }
+}
+
+// Adds a 64-bit fixed-point sum to a slot's (wrapping; the final sum is non-negative).
+fn add_to_slot(slot: u32, sum: FixedSum) {
+    if (slot == SLOT_NONE) {
+        return;
+    }
+    for (var c = 0u; c < 3u; c++) {
+        let lo = sum.lo[c];
+        let hi = sum.hi[c];
+        if ((lo | hi) == 0u) {
+            continue;
+        }
+        let old = atomicAdd(&scatter[slot_word(slot, 2u + c)], lo);
+        let carry = select(0u, 1u, old + lo < old);
+        atomicAdd(&scatter[slot_word(slot, 5u + c)], hi + carry);
+    }
+}
+
+// The segment of ray sample t, by the comparisons the gather's membership uses.
+fn segment_of(hit: vec2<f32>, t: f32) -> u32 {
+    let len = (hit.y - hit.x) / f32(photon.segments);
+    var s = min(u32(max((t - hit.x) / len, 0.0)), photon.segments - 1u);
+    loop {
+        let b = segment_bounds(hit, s);
+        if (s > 0u && t < b.x) {
+            s -= 1u;
+        } else if (s + 1u < photon.segments && t >= b.y) {
+            s += 1u;
+        } else {
+            return s;
+        }
+    }
+    return s;
+}
+
+@compute @workgroup_size(64)
+fn scatter_changes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let index = linear_index(gid, groups);
+    if (index >= min(atomicLoad(&counters[COUNTER_CHANGES]), photon.change_capacity)) {
+        return;
+    }
+    let change = changes[index];
+    let p = change.position;
+    let r = photon.radius;
+    let r2 = r * r;
+    let step = photon.gather_step;
+    let size = vec2<f32>(f32(scene.width), f32(scene.height));
+    // The pixels whose rays can pass within r of p: the projection of p's cube, one pixel wider
+    // for rounding (every ray through the ball crosses the cube).
+    var lo = size;
+    var hi = vec2<f32>(-1.0);
+    var behind = false;
+    for (var c = 0u; c < 8u; c++) {
+        let corner = p + vec3<f32>(
+            select(-r, r, (c & 1u) != 0u),
+            select(-r, r, (c & 2u) != 0u),
+            select(-r, r, (c & 4u) != 0u),
+        );
+        let v = corner - scene.eye;
+        let z = dot(v, scene.forward);
+        if (z <= 0.0) {
+            behind = true;
+            break;
+        }
+        let ndc = vec2<f32>(
+            dot(v, scene.right) / (z * scene.aspect * scene.tan_half_fov),
+            dot(v, scene.up) / (z * scene.tan_half_fov),
+        );
+        let px = vec2<f32>(ndc.x + 1.0, 1.0 - ndc.y) * 0.5 * size;
+        lo = min(lo, px);
+        hi = max(hi, px);
+    }
+    if (behind) {
+        lo = vec2<f32>(0.0);
+        hi = size;
+    }
+    // Pixel i's centre is at i + 0.5.
+    let first = vec2<i32>(clamp(floor(lo - 0.5) - 1.0, vec2<f32>(0.0), size - 1.0));
+    let last = vec2<i32>(clamp(ceil(hi - 0.5) + 1.0, vec2<f32>(-1.0), size - 1.0));
+    if (any(last < first)) {
+        return;
+    }
+    let pixels = u32(last.x - first.x + 1) * u32(last.y - first.y + 1);
+    let per_pixel = u32(ceil(2.1 * r / step)) + 8u;
+    if (pixels * per_pixel > photon.round_budget) {
+        atomicAdd(&counters[COUNTER_SCATTER_OVERFLOW], 1u);
+        return;
+    }
+    let e = p - scene.eye;
+    let e2 = dot(e, e);
+    // The rays' distance to p is found by a difference of squares; its rounding stays far
+    // below this margin, and the exact test is the gather's own (d2 < r2).
+    let reach2 = 1.02 * r2 + 1e-5 * e2;
+    var current = SLOT_NONE;
+    var sum = FixedSum(vec3<u32>(0u), vec3<u32>(0u));
+    for (var py = first.y; py <= last.y; py++) {
+        for (var px = first.x; px <= last.x; px++) {
+            let pixel = u32(py) * scene.width + u32(px);
+            let dir = pixel_ray(pixel);
+            let tc = dot(e, dir);
+            let perp2 = max(e2 - tc * tc, 0.0);
+            if (perp2 >= reach2) {
+                continue;
+            }
+            let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
+            if (hit.x >= hit.y) {
+                continue;
+            }
+            let half = sqrt(reach2 - perp2);
+            let jitter = pixel_jitter(pixel);
+            let phase = phase_hg(dot(change.direction, -dir), scene.g);
+            let k_first = max(0.0, floor((tc - half - hit.x) / step - jitter) - 1.0);
+            let k_last = ceil((tc + half - hit.x) / step - jitter) + 1.0;
+            for (var k = k_first; k <= k_last; k += 1.0) {
+                let t = hit.x + (k + jitter) * step;
+                if (t < hit.x) {
+                    continue;
+                }
+                if (t >= hit.y) {
+                    break;
+                }
+                let x = scene.eye + dir * t;
+                let d = x - p;
+                let d2 = dot(d, d);
+                if (d2 >= r2) {
+                    continue;
+                }
+                let s = segment_of(hit, t);
+                let id = pixel * photon.segments + s;
+                let slot = atomicLoad(&scatter[id]);
+                if (slot == SLOT_NONE) {
+                    // A fresh segment (gathered whole), one gathered from the change grid, or
+                    // one no change reaches.
+                    continue;
+                }
+                let k0 = first_lattice_index(hit, segment_bounds(hit, s).x, jitter);
+                if (k < k0) {
+                    continue;
+                }
+                let j = u32(k - k0);
+                if (j >= atomicLoad(&scatter[slot_word(slot, 1u)])) {
+                    continue;
+                }
+                let weight = bitcast<f32>(atomicLoad(&scatter[weight_word(slot, j)]));
+                if (weight < 0.0) {
+                    continue;
+                }
+                if (slot != current) {
+                    add_to_slot(current, sum);
+                    current = slot;
+                    sum = FixedSum(vec3<u32>(0u), vec3<u32>(0u));
+                }
+                // The gather's term (photon_gather.wgsl), factor for factor.
+                let factor = weight * phase * (1.0 - d2 / r2);
+                sum = accumulate(sum, change.power * factor, change.kind == CHANGE_SUBTRACT);
+                if (change.kind == CHANGE_REPLACE) {
+                    sum = accumulate(sum, change.old_power * factor, true);
+                }
+            }
+        }
+    }
+    add_to_slot(current, sum);
+}
+
+@compute @workgroup_size(64)
+fn scatter_apply(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let slot = linear_index(gid, groups);
+    if (slot >= scatter_slots()) {
+        return;
+    }
+    let id = atomicLoad(&scatter[slot_word(slot, 0u)]);
+    var seg = segments[id];
+    let lo = vec3<u32>(
+        atomicLoad(&scatter[slot_word(slot, 2u)]),
+        atomicLoad(&scatter[slot_word(slot, 3u)]),
+        atomicLoad(&scatter[slot_word(slot, 4u)]),
+    );
+    let hi = vec3<u32>(
+        atomicLoad(&scatter[slot_word(slot, 5u)]),
+        atomicLoad(&scatter[slot_word(slot, 6u)]),
+        atomicLoad(&scatter[slot_word(slot, 7u)]),
+    );
+    let sum_lo = seg.color_lo + lo;
+    seg.color_hi = seg.color_hi + hi + select(vec3<u32>(0u), vec3<u32>(1u), sum_lo < lo);
+    seg.color_lo = sum_lo;
+    segments[id] = seg;
+}
+
+// After an overflow: every slot's segment goes to the delta gather (gather_mark left its
+// state ready), and no slot sum is applied.
+@compute @workgroup_size(64)
+fn scatter_fallback(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let slot = linear_index(gid, groups);
+    if (slot >= scatter_slots()) {
+        return;
+    }
+    let id = atomicLoad(&scatter[slot_word(slot, 0u)]);
+    gather_list[atomicAdd(&counters[COUNTER_LIST], 1u)] = id | DELTA_SEGMENT;
+}
