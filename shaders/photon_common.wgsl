@@ -171,8 +171,12 @@ const COUNTER_SCATTER: u32 = 13u;
 // Set when a change reaches more pixels than one scatter invocation may visit: the update then
 // gathers every delta segment from the change grid instead (photon_scatter.wgsl).
 const COUNTER_SCATTER_OVERFLOW: u32 = 14u;
+// Set by the host where `scatter_touch` ran: gather_mark then finds the segments the changes
+// reach by its marks instead of the dirty cells (unless the change list or the scatter
+// overflowed).
+const COUNTER_TOUCH: u32 = 15u;
 // Dirty-cell bits follow the counters.
-const COUNTER_DIRTY: u32 = 15u;
+const COUNTER_DIRTY: u32 = 16u;
 const GRID_RECORDS: u32 = 0u;
 const GRID_CHANGES: u32 = 1u;
 const CHANGE_ADD: u32 = 0u;
@@ -211,13 +215,22 @@ const SPATIAL_CELLS: u32 = 2u;
 // The records an update changed, old and new versions (or one entry for both where only the
 // power changed; COUNTER_CHANGES of them).
 @group(0) @binding(15) var<storage, read_write> changes: array<PhotonChange>;
-// The delta scatter's state (photon_scatter.wgsl): per segment its slot (SLOT_NONE: not
-// scattered), then per slot SLOT_WORDS words (segment, samples marched, the change sum's lo
+// The delta scatter's state (photon_scatter.wgsl): per segment a word (SEGMENT_UNTOUCHED, cleared
+// by the host before an update; SEGMENT_TOUCHED, set by scatter_touch; or its slot + 2, set by
+// gather_mark), then per slot SLOT_WORDS words (segment, samples marched, the change sum's lo
 // and hi words), then per slot scatter_samples sample weights (f32 bits, < 0: not gathered).
 @group(0) @binding(16) var<storage, read_write> scatter: array<atomic<u32>>;
 
 const SLOT_NONE: u32 = 0xffffffffu;
 const SLOT_WORDS: u32 = 8u;
+const SEGMENT_UNTOUCHED: u32 = 0u;
+const SEGMENT_TOUCHED: u32 = 1u;
+
+// The delta-scatter slot of segment id (SLOT_NONE: none).
+fn segment_slot(id: u32) -> u32 {
+    let word = atomicLoad(&scatter[id]);
+    return select(SLOT_NONE, word - 2u, word >= 2u);
+}
 
 // Word w of a delta-scatter slot: 0 its segment, 1 the samples scatter_weights marched, 2..4 and
 // 5..7 the lo and hi words of its sum (rgb).

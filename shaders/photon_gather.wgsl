@@ -70,8 +70,10 @@ fn gather_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     if (id >= scene.width * scene.height * photon.segments) {
         return;
     }
-    if (photon.mode == MODE_UPDATE) {
-        atomicStore(&scatter[id], SLOT_NONE);
+    var touched = false;
+    if (photon.mode == MODE_UPDATE && photon.scatter_capacity > 0u) {
+        touched = atomicLoad(&scatter[id]) == SEGMENT_TOUCHED;
+        atomicStore(&scatter[id], SEGMENT_UNTOUCHED);
     }
     let pixel = id / photon.segments;
     let dir = pixel_ray(pixel);
@@ -94,7 +96,15 @@ fn gather_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
             if (photon.spatial == SPATIAL_AXES) {
                 stale = spatial_hit(scene.eye + dir * bounds.x, scene.eye + dir * bounds.y);
             } else if (photon.spatial == SPATIAL_CELLS) {
-                stale = cells_hit(pixel, hit, bounds.x, bounds.y, dir);
+                // The delta scatter's marks where they cover every change (photon_scatter.wgsl).
+                let marked = atomicLoad(&counters[COUNTER_TOUCH]) != 0u
+                    && atomicLoad(&counters[COUNTER_SCATTER_OVERFLOW]) == 0u
+                    && atomicLoad(&counters[COUNTER_CHANGES]) <= photon.change_capacity;
+                if (marked) {
+                    stale = touched;
+                } else {
+                    stale = cells_hit(pixel, hit, bounds.x, bounds.y, dir);
+                }
             } else {
                 stale = atomicLoad(&counters[COUNTER_CHANGED]) > 0u;
             }
@@ -105,10 +115,10 @@ fn gather_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
                 start.color_hi = old.color_hi;
                 atomicAdd(&counters[COUNTER_DELTA], 1u);
                 // The delta scatter takes it while it has slots (photon_scatter.wgsl).
-                if (photon.scatter_capacity > 0u) {
+                if (photon.scatter_capacity > 0u && atomicLoad(&counters[COUNTER_SCATTER_OVERFLOW]) == 0u) {
                     let slot = atomicAdd(&counters[COUNTER_SCATTER], 1u);
                     if (slot < photon.scatter_capacity) {
-                        atomicStore(&scatter[id], slot);
+                        atomicStore(&scatter[id], slot + 2u);
                         atomicStore(&scatter[slot_word(slot, 0u)], id);
                         scattered = true;
                     }

@@ -108,20 +108,18 @@ fn segment_of(hit: vec2<f32>, t: f32) -> u32 {
     return s;
 }
 
-@compute @workgroup_size(64)
-fn scatter_changes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let index = linear_index(gid, groups);
-    if (index >= min(atomicLoad(&counters[COUNTER_CHANGES]), photon.change_capacity)) {
-        return;
-    }
-    let change = changes[index];
-    let p = change.position;
+// The pixels whose rays can pass within the radius of p: the projection of p's cube (every
+// ray through the ball crosses the cube), rounded outwards. `fits` is false where there are
+// none, or more than one invocation may visit (COUNTER_SCATTER_OVERFLOW is then set).
+struct ChangePixels {
+    first: vec2<i32>,
+    last: vec2<i32>,
+    fits: bool,
+}
+
+fn change_pixels(p: vec3<f32>) -> ChangePixels {
     let r = photon.radius;
-    let r2 = r * r;
-    let step = photon.gather_step;
     let size = vec2<f32>(f32(scene.width), f32(scene.height));
-    // The pixels whose rays can pass within r of p: the projection of p's cube, one pixel wider
-    // for rounding (every ray through the ball crosses the cube).
     var lo = size;
     var hi = vec2<f32>(-1.0);
     var behind = false;
@@ -149,23 +147,95 @@ fn scatter_changes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         lo = vec2<f32>(0.0);
         hi = size;
     }
-    // Pixel i's centre is at i + 0.5.
-    let first = vec2<i32>(clamp(floor(lo - 0.5) - 1.0, vec2<f32>(0.0), size - 1.0));
-    let last = vec2<i32>(clamp(ceil(hi - 0.5) + 1.0, vec2<f32>(-1.0), size - 1.0));
+    // Pixel i's centre is at i + 0.5; rounding outwards leaves a pixel's margin on each side.
+    let first = vec2<i32>(clamp(floor(lo - 0.5), vec2<f32>(0.0), size - 1.0));
+    let last = vec2<i32>(clamp(ceil(hi - 0.5), vec2<f32>(-1.0), size - 1.0));
     if (any(last < first)) {
-        return;
+        return ChangePixels(first, last, false);
     }
     let pixels = u32(last.x - first.x + 1) * u32(last.y - first.y + 1);
-    let per_pixel = u32(ceil(2.1 * r / step)) + 8u;
+    let per_pixel = u32(ceil(2.1 * r / photon.gather_step)) + 8u;
     if (pixels * per_pixel > photon.round_budget) {
         atomicAdd(&counters[COUNTER_SCATTER_OVERFLOW], 1u);
+        return ChangePixels(first, last, false);
+    }
+    return ChangePixels(first, last, true);
+}
+
+// The squared distance from p within which a ray may pass near enough (e2: p's squared
+// distance from the eye). It is found by a difference of squares; its rounding stays far below
+// this margin, and the exact test is the gather's own (d2 < r2).
+fn ball_reach2(e2: f32) -> f32 {
+    return 1.02 * photon.radius * photon.radius + 1e-5 * e2;
+}
+
+// The change-list entries an update may have (the host's bound; the rest return at once).
+fn change_entries() -> u32 {
+    return min(atomicLoad(&counters[COUNTER_CHANGES]), photon.change_capacity);
+}
+
+// Marks (SEGMENT_TOUCHED) every segment that holds a lattice sample within the radius of a
+// changed photon, or may: the segments of each ray through the photon's ball that overlap the
+// ray's interval within the ball. gather_mark takes these as the segments the changes reach,
+// in place of the dirty cells' march over every segment (COUNTER_TOUCH).
+@compute @workgroup_size(64)
+fn scatter_touch(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let index = linear_index(gid, groups);
+    if (index >= change_entries()) {
+        return;
+    }
+    let p = changes[index].position;
+    let box = change_pixels(p);
+    if (!box.fits) {
         return;
     }
     let e = p - scene.eye;
     let e2 = dot(e, e);
-    // The rays' distance to p is found by a difference of squares; its rounding stays far
-    // below this margin, and the exact test is the gather's own (d2 < r2).
-    let reach2 = 1.02 * r2 + 1e-5 * e2;
+    let reach2 = ball_reach2(e2);
+    for (var py = box.first.y; py <= box.last.y; py++) {
+        for (var px = box.first.x; px <= box.last.x; px++) {
+            let pixel = u32(py) * scene.width + u32(px);
+            let dir = pixel_ray(pixel);
+            let tc = dot(e, dir);
+            let perp2 = max(e2 - tc * tc, 0.0);
+            if (perp2 >= reach2) {
+                continue;
+            }
+            let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
+            // A step's margin at each end for the rounding of the samples' positions.
+            let half = sqrt(reach2 - perp2) + photon.gather_step;
+            let ta = max(tc - half, hit.x);
+            let tb = min(tc + half, hit.y);
+            if (ta >= tb) {
+                continue;
+            }
+            let last = segment_of(hit, tb);
+            for (var s = segment_of(hit, ta); s <= last; s++) {
+                atomicStore(&scatter[pixel * photon.segments + s], SEGMENT_TOUCHED);
+            }
+        }
+    }
+}
+
+@compute @workgroup_size(64)
+fn scatter_changes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let index = linear_index(gid, groups);
+    if (index >= change_entries()) {
+        return;
+    }
+    let change = changes[index];
+    let p = change.position;
+    let r2 = photon.radius * photon.radius;
+    let step = photon.gather_step;
+    let box = change_pixels(p);
+    if (!box.fits) {
+        return;
+    }
+    let first = box.first;
+    let last = box.last;
+    let e = p - scene.eye;
+    let e2 = dot(e, e);
+    let reach2 = ball_reach2(e2);
     var current = SLOT_NONE;
     var sum = FixedSum(vec3<u32>(0u), vec3<u32>(0u));
     for (var py = first.y; py <= last.y; py++) {
@@ -186,6 +256,12 @@ fn scatter_changes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
             let phase = phase_hg(dot(change.direction, -dir), scene.g);
             let k_first = max(0.0, floor((tc - half - hit.x) / step - jitter) - 1.0);
             let k_last = ceil((tc + half - hit.x) / step - jitter) + 1.0;
+            // The segment of the samples being visited: its slot, first lattice index and
+            // samples marched (SLOT_NONE: none yet).
+            var segment = SLOT_NONE;
+            var slot = SLOT_NONE;
+            var k0 = 0.0;
+            var marched = 0u;
             for (var k = k_first; k <= k_last; k += 1.0) {
                 let t = hit.x + (k + jitter) * step;
                 if (t < hit.x) {
@@ -201,21 +277,20 @@ fn scatter_changes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
                     continue;
                 }
                 let s = segment_of(hit, t);
-                let id = pixel * photon.segments + s;
-                let slot = atomicLoad(&scatter[id]);
-                if (slot == SLOT_NONE) {
-                    // A fresh segment (gathered whole), one gathered from the change grid, or
-                    // one no change reaches.
-                    continue;
+                if (s != segment) {
+                    segment = s;
+                    slot = segment_slot(pixel * photon.segments + s);
+                    if (slot != SLOT_NONE) {
+                        k0 = first_lattice_index(hit, segment_bounds(hit, s).x, jitter);
+                        marched = atomicLoad(&scatter[slot_word(slot, 1u)]);
+                    }
                 }
-                let k0 = first_lattice_index(hit, segment_bounds(hit, s).x, jitter);
-                if (k < k0) {
+                // SLOT_NONE: a fresh segment (gathered whole), one gathered from the change
+                // grid, or one no change reaches.
+                if (slot == SLOT_NONE || k < k0 || u32(k - k0) >= marched) {
                     continue;
                 }
                 let j = u32(k - k0);
-                if (j >= atomicLoad(&scatter[slot_word(slot, 1u)])) {
-                    continue;
-                }
                 let weight = bitcast<f32>(atomicLoad(&scatter[weight_word(slot, j)]));
                 if (weight < 0.0) {
                     continue;

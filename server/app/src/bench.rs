@@ -307,13 +307,31 @@ pub fn tf_edit(options: &TfEditBench) -> anyhow::Result<serde_json::Value> {
         ..PhotonParams::default()
     };
     // The same update with the paper's spatial historygram and with none (any changed photon
-    // invalidates every segment), to measure what each saves.
-    let variants = [Invalidation::SpatialHistogram, Invalidation::AnyPhoton].map(|invalidation| {
-        PhotonParams {
-            invalidation,
-            ..params
-        }
-    });
+    // invalidates every segment), to measure what each saves, and with the delta scatter off
+    // (every segment a change reaches gathered from the change grid).
+    let variants = [
+        (
+            Invalidation::SpatialHistogram.name(),
+            PhotonParams {
+                invalidation: Invalidation::SpatialHistogram,
+                ..params
+            },
+        ),
+        (
+            Invalidation::AnyPhoton.name(),
+            PhotonParams {
+                invalidation: Invalidation::AnyPhoton,
+                ..params
+            },
+        ),
+        (
+            "no_scatter",
+            PhotonParams {
+                scatter_bytes: 0,
+                ..params
+            },
+        ),
+    ];
     let mut rows = Vec::new();
     for scenario in tf_edit_scenarios(options)? {
         let gpu_volume = engine.upload_volume(&scenario.volume)?;
@@ -332,7 +350,7 @@ pub fn tf_edit(options: &TfEditBench) -> anyhow::Result<serde_json::Value> {
         let mut incremental = Photon::new(&engine, Arc::clone(&gpu_volume), &base, params)?;
         let mut others = variants
             .iter()
-            .map(|p| Photon::new(&engine, Arc::clone(&gpu_volume), &base, *p))
+            .map(|(_, p)| Photon::new(&engine, Arc::clone(&gpu_volume), &base, *p))
             .collect::<Result<Vec<_>, _>>()?;
         // Warm-up (first dispatches compile on some drivers).
         full.recompute(&engine, &base, options.passes)?;
@@ -367,13 +385,13 @@ pub fn tf_edit(options: &TfEditBench) -> anyhow::Result<serde_json::Value> {
             let b = full.read_state(&engine)?;
             let mut bit_exact = a == b;
             let mut variant_rows = serde_json::Map::new();
-            for other in &mut others {
+            for (other, (variant, _)) in others.iter_mut().zip(&variants) {
                 let started = Instant::now();
                 let r = other.update_tf(&engine, &scene, &base.tf)?;
                 let ms = started.elapsed().as_secs_f64() * 1000.0;
                 bit_exact &= other.read_state(&engine)? == b;
                 variant_rows.insert(
-                    other.params().invalidation.name().to_owned(),
+                    (*variant).to_owned(),
                     json!({
                         "incremental_ms": ms,
                         "speedup": full_ms / ms.max(1e-6),

@@ -6,9 +6,9 @@ use std::mem::{offset_of, size_of};
 use voxlight_engine::passes::photon::{
     CHANGE_ADD, CHANGE_REPLACE, CHANGE_SUBTRACT, COUNTER_CHANGED, COUNTER_CHANGES, COUNTER_DELTA,
     COUNTER_LIST, COUNTER_RETRACED, COUNTER_SCATTER, COUNTER_SCATTER_OVERFLOW, COUNTER_SEGMENTS,
-    COUNTER_SPATIAL, COUNTER_WORDS, GRID_CHANGES, GRID_RECORDS, GatherState, MODE_FULL,
-    MODE_UPDATE, PhotonChange, PhotonEmitter, PhotonPath, PhotonRecord, PhotonUniforms, SLOT_WORDS,
-    SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
+    COUNTER_SPATIAL, COUNTER_TOUCH, COUNTER_WORDS, GRID_CHANGES, GRID_RECORDS, GatherState,
+    MODE_FULL, MODE_UPDATE, PhotonChange, PhotonEmitter, PhotonPath, PhotonRecord, PhotonUniforms,
+    SLOT_WORDS, SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
 };
 use voxlight_engine::shaders;
 
@@ -133,6 +133,7 @@ fn photon_constants_match_wgsl() {
         ("COUNTER_DELTA", COUNTER_DELTA as u32),
         ("COUNTER_SCATTER", COUNTER_SCATTER as u32),
         ("COUNTER_SCATTER_OVERFLOW", COUNTER_SCATTER_OVERFLOW as u32),
+        ("COUNTER_TOUCH", COUNTER_TOUCH as u32),
         ("SLOT_WORDS", SLOT_WORDS as u32),
         ("GRID_RECORDS", GRID_RECORDS),
         ("GRID_CHANGES", GRID_CHANGES),

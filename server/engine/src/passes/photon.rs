@@ -2,8 +2,8 @@
 //! (`photon_trace.wgsl`: mark the paths an update retraces, trace), the hash-grid build
 //! (`photon_grid.wgsl`: clear, count, scan, scatter; of the records or of an update's changes),
 //! gathering + compositing (`photon_gather.wgsl`: mark, gather in rounds, composite) and the
-//! delta scatter of an update's changes (`photon_scatter.wgsl`: weights, changes, apply,
-//! fallback). All share one binding layout
+//! delta scatter of an update's changes (`photon_scatter.wgsl`: touch, weights, changes,
+//! apply, fallback). All share one binding layout
 //! (declared once in `photon_common.wgsl`) and the `#[repr(C)]` records below.
 
 use bytemuck::{Pod, Zeroable};
@@ -133,8 +133,9 @@ pub const EMIT_POINT: u32 = 1;
 pub const EMIT_ENVIRONMENT: u32 = 2;
 /// `counters` words: retraced paths, changed records, recomputed segments, spatial 3×2,
 /// listed segments (2), change-list entries, segments updated from the changes alone, delta
-/// scatter slots taken, delta scatter overflows; the dirty-cell bits follow.
-pub const COUNTER_WORDS: usize = 15;
+/// scatter slots taken, delta scatter overflows, whether the scatter's marks stand for the
+/// dirty cells; the dirty-cell bits follow.
+pub const COUNTER_WORDS: usize = 16;
 pub const COUNTER_RETRACED: usize = 0;
 pub const COUNTER_CHANGED: usize = 1;
 pub const COUNTER_SEGMENTS: usize = 2;
@@ -145,6 +146,7 @@ pub const COUNTER_CHANGES: usize = 11;
 pub const COUNTER_DELTA: usize = 12;
 pub const COUNTER_SCATTER: usize = 13;
 pub const COUNTER_SCATTER_OVERFLOW: usize = 14;
+pub const COUNTER_TOUCH: usize = 15;
 /// Words per delta-scatter slot (photon_scatter.wgsl).
 pub const SLOT_WORDS: usize = 8;
 /// `grid_pass` uniform: which grid the grid kernels build.
@@ -173,6 +175,7 @@ pub struct PhotonPass {
     pub gather_mark: wgpu::ComputePipeline,
     pub gather: wgpu::ComputePipeline,
     pub composite: wgpu::ComputePipeline,
+    pub scatter_touch: wgpu::ComputePipeline,
     pub scatter_weights: wgpu::ComputePipeline,
     pub scatter_changes: wgpu::ComputePipeline,
     pub scatter_apply: wgpu::ComputePipeline,
@@ -260,6 +263,7 @@ impl PhotonPass {
             gather_mark: pipeline("photon gather mark", &gather, "gather_mark"),
             gather: pipeline("photon gather", &gather, "gather"),
             composite: pipeline("photon composite", &gather, "composite"),
+            scatter_touch: pipeline("photon scatter touch", &scatter, "scatter_touch"),
             scatter_weights: pipeline("photon scatter weights", &scatter, "scatter_weights"),
             scatter_changes: pipeline("photon scatter changes", &scatter, "scatter_changes"),
             scatter_apply: pipeline("photon scatter apply", &scatter, "scatter_apply"),

@@ -20,6 +20,7 @@
 //!
 //! A camera edit keeps the photons (they do not depend on the camera) and gathers again.
 
+use std::cell::Cell;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -27,11 +28,11 @@ use voxlight_protocol::{Light, TransferFunction};
 
 use crate::passes::photon::{
     COUNTER_CHANGED, COUNTER_CHANGES, COUNTER_DELTA, COUNTER_LIST, COUNTER_RETRACED,
-    COUNTER_SCATTER, COUNTER_SCATTER_OVERFLOW, COUNTER_SEGMENTS, COUNTER_SPATIAL, COUNTER_WORDS,
-    EMIT_DIRECTIONAL, EMIT_ENVIRONMENT, EMIT_POINT, GRID_CHANGES, GRID_RECORDS, GatherState,
-    MODE_FULL, MODE_UPDATE, PhotonBindings, PhotonChange, PhotonEmitter, PhotonPass, PhotonPath,
-    PhotonRecord, PhotonUniforms, SLOT_WORDS, SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
-    dispatch_linear, dispatch_single,
+    COUNTER_SCATTER, COUNTER_SCATTER_OVERFLOW, COUNTER_SEGMENTS, COUNTER_SPATIAL, COUNTER_TOUCH,
+    COUNTER_WORDS, EMIT_DIRECTIONAL, EMIT_ENVIRONMENT, EMIT_POINT, GRID_CHANGES, GRID_RECORDS,
+    GatherState, MODE_FULL, MODE_UPDATE, PhotonBindings, PhotonChange, PhotonEmitter, PhotonPass,
+    PhotonPath, PhotonRecord, PhotonUniforms, SLOT_WORDS, SPATIAL_AXES, SPATIAL_CELLS,
+    SPATIAL_NONE, Segment, dispatch_linear, dispatch_single,
 };
 use crate::scene_gpu::{SceneUniforms, default_step};
 use crate::technique::{StepReport, Technique, TechniqueStats};
@@ -425,6 +426,10 @@ pub struct Photon {
     gather_rounds: u32,
     /// Segments the last update's delta scatter updated.
     scattered: u32,
+    /// Whether the records' grid is older than the records (an update that gathered no
+    /// segment afresh did not need it).
+    records_grid_behind: Cell<bool>,
+    last_uniforms: Cell<PhotonUniforms>,
 }
 
 impl Photon {
@@ -538,6 +543,8 @@ impl Photon {
             last_update: None,
             gather_rounds: 0,
             scattered: 0,
+            records_grid_behind: Cell::new(false),
+            last_uniforms: Cell::new(bytemuck::Zeroable::zeroed()),
         };
         technique.write_tf(engine, scene);
         technique.write_emitters(engine, scene);
@@ -663,6 +670,27 @@ impl Photon {
             .gpu
             .queue
             .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&uniforms));
+        self.last_uniforms.set(uniforms);
+    }
+
+    /// Builds the records' grid if an update left it behind (it builds it only where it
+    /// gathers a segment afresh), with the last uniforms but its grid.
+    fn catch_up_records_grid(&self, engine: &Engine) {
+        if !self.records_grid_behind.replace(false) {
+            return;
+        }
+        let uniforms = PhotonUniforms {
+            grid_pass: GRID_RECORDS,
+            ..self.last_uniforms.get()
+        };
+        engine
+            .gpu
+            .queue
+            .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&uniforms));
+        let records = self.passes * self.params.photons_per_pass * self.params.bounces;
+        let mut encoder = Self::encoder(engine, "photon grid");
+        self.build_grid(&mut encoder, &engine.photon, records);
+        engine.gpu.queue.submit([encoder.finish()]);
     }
 
     fn encoder(engine: &Engine, label: &str) -> wgpu::CommandEncoder {
@@ -721,7 +749,7 @@ impl Photon {
         let pixels = self.width * self.height;
         let segments = pixels * self.params.segments;
         let lane_budget = self.round_budget(engine);
-        let mut grids = vec![GRID_RECORDS];
+        let mut grids = Vec::new();
         let mut encoder = Self::encoder(engine, "photon gather mark");
         self.write_uniforms(
             engine,
@@ -746,8 +774,14 @@ impl Photon {
             segments,
         );
         engine.gpu.queue.submit([encoder.finish()]);
-        if mode == MODE_UPDATE {
+        if mode == MODE_FULL {
+            grids.push(GRID_RECORDS);
+        } else {
             let words = self.counter_words(engine)?;
+            // A fresh gather reads the records' grid, a delta gather the changes'.
+            if words[COUNTER_SEGMENTS] > words[COUNTER_DELTA] {
+                grids.push(GRID_RECORDS);
+            }
             let slots = words[COUNTER_SCATTER].min(self.budget.scatter_capacity as u32);
             let mut gathered_from_changes = words[COUNTER_DELTA] - slots;
             self.scattered = slots;
@@ -762,6 +796,7 @@ impl Photon {
                 grids.push(GRID_CHANGES);
             }
         }
+        self.records_grid_behind.set(!grids.contains(&GRID_RECORDS));
         for grid in grids {
             let items = if grid == GRID_RECORDS {
                 records
@@ -889,6 +924,34 @@ impl Photon {
         dispatch_linear(&mut encoder, label, pipeline, bg, slots);
         engine.gpu.queue.submit([encoder.finish()]);
         Ok(overflow)
+    }
+
+    /// Marks the segments the update's changes can reach (`scatter_touch`, over at most
+    /// `entries` change-list entries), for gather_mark to take instead of the dirty cells.
+    fn touch(&self, engine: &Engine, scene: &Scene, query: Query, entries: u32) {
+        let dispatch = Dispatch {
+            mode: MODE_UPDATE,
+            round: Round {
+                budget: self.round_budget(engine),
+                ..Round::default()
+            },
+            ..Dispatch::default()
+        };
+        self.write_uniforms(engine, scene, query, dispatch);
+        engine.gpu.queue.write_buffer(
+            &self.counters,
+            COUNTER_TOUCH as u64 * 4,
+            bytemuck::bytes_of(&1u32),
+        );
+        let mut encoder = Self::encoder(engine, "photon scatter touch");
+        dispatch_linear(
+            &mut encoder,
+            "photon scatter touch",
+            &engine.photon.scatter_touch,
+            &self.bind_group,
+            entries,
+        );
+        engine.gpu.queue.submit([encoder.finish()]);
     }
 
     /// The counter words (not the dirty bits; blocks on the GPU).
@@ -1049,6 +1112,17 @@ impl Photon {
         self.write_scene(engine, scene)?;
         let listed = self.list_retraced(engine, scene, paths, query)?;
         self.trace(engine, scene, MODE_UPDATE, 0, listed, query);
+        if self.params.invalidation == Invalidation::DirtyCells && self.budget.scatter_capacity > 0
+        {
+            // A retraced path changes at most `bounces` records, each one or two entries.
+            let bound = 2 * self.params.bounces as u64 * listed as u64;
+            self.touch(
+                engine,
+                scene,
+                query,
+                bound.min(self.budget.change_entries) as u32,
+            );
+        }
         self.grid_and_gather(engine, scene, MODE_UPDATE, query)?;
         let bytes = engine.gpu.read_buffer(&self.counters)?;
         let words: &[u32] = bytemuck::try_cast_slice(&bytes)
@@ -1075,6 +1149,7 @@ impl Photon {
 
     /// Reads back the photon map, the segments and the picture.
     pub fn read_state(&self, engine: &Engine) -> Result<PhotonState, EngineError> {
+        self.catch_up_records_grid(engine);
         let records = engine.gpu.read_buffer(&self.records)?;
         let paths = engine.gpu.read_buffer(&self.paths)?;
         let segments = engine.gpu.read_buffer(&self.segments)?;
