@@ -551,9 +551,11 @@ fn delta_scatter_capacity_and_overflow_still_equal_a_full_recompute() {
     });
     let defaults = params(Invalidation::DirtyCells);
     let segments = 40 * 40 * defaults.segments as u64;
-    // The slot map (4 bytes per segment) and room for a few dozen segments.
+    // The slot map (4 bytes per segment) and room for a few hundred segments (a slot is 22
+    // words here): fewer than the edit's, but enough that the changes (about one per segment)
+    // are worth scattering.
     let few_slots = PhotonParams {
-        scatter_bytes: segments * 4 + 40 * 4 * 40,
+        scatter_bytes: segments * 4 + 300 * 4 * 22,
         ..defaults
     };
     let overflowing = PhotonParams {
@@ -569,8 +571,8 @@ fn delta_scatter_capacity_and_overflow_still_equal_a_full_recompute() {
         photon.apply(engine(), &s, &change).expect("apply");
         let report = photon.last_update().expect("report");
         eprintln!(
-            "{name}: {} segments from the changes, {} by the scatter",
-            report.segments_delta, report.segments_scattered
+            "{name}: {} segments from the changes, {} by the scatter, {} changes",
+            report.segments_delta, report.segments_scattered, report.changes
         );
         assert!(report.segments_delta > 0, "{name}");
         if name == "few slots" {
