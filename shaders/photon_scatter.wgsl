@@ -4,6 +4,9 @@
 // from the segment's side: every dirty sample visits the change grid's 27 cells, and most of
 // what it visits lies beyond the radius. The scatter goes from the photon's side instead:
 //
+// - `scatter_touch` (where the changes are few; the host decides) marks the segments that the
+//   rays through each change's ball cross within it, for gather_mark to take in place of the
+//   dirty cells;
 // - `scatter_weights` marches each slot's segment once, exactly as the gather does, and keeps
 //   each lattice sample's weight (sample_weight; −1 where the gather takes no photons: σ = 0,
 //   before the segment or past its transmittance cut-off);
@@ -16,9 +19,12 @@
 // - `scatter_apply` adds each slot's sum to its segment.
 //
 // A change whose pixels would take more loop iterations than one invocation may run (llvmpipe
-// ends loops silently past its limit) sets COUNTER_SCATTER_OVERFLOW instead; the host then
-// runs `scatter_fallback`, which lists every slot's segment for the delta gather, and no sum is
-// applied. Segments past scatter_capacity are gathered as before (gather_mark).
+// ends loops silently past its limit) sets COUNTER_SCATTER_OVERFLOW instead. Found by
+// scatter_touch, gather_mark then gives out no slots (and uses the dirty cells); found by
+// scatter_changes, the host runs `scatter_fallback`, which lists every slot's segment for the
+// delta gather, and no sum is applied. Segments past scatter_capacity are gathered as before (gather_mark), and so are all
+// of them where the changes far outnumber the segments (the host then runs scatter_fallback
+// alone: the scatter's cost follows the changes, the gather's the segments).
 // Rust twin: server/engine/src/passes/photon.rs.
 
 fn weight_word(slot: u32, j: u32) -> u32 {
@@ -169,7 +175,7 @@ fn ball_reach2(e2: f32) -> f32 {
     return 1.02 * photon.radius * photon.radius + 1e-5 * e2;
 }
 
-// The change-list entries an update may have (the host's bound; the rest return at once).
+// The change-list entries the update listed (past the list's capacity they were dropped).
 fn change_entries() -> u32 {
     return min(atomicLoad(&counters[COUNTER_CHANGES]), photon.change_capacity);
 }

@@ -8,7 +8,9 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use common::*;
-use voxlight_engine::techniques::photon::{Invalidation, Photon, PhotonParams, PhotonState};
+use voxlight_engine::techniques::photon::{
+    Invalidation, Photon, PhotonBudget, PhotonParams, PhotonState,
+};
 use voxlight_engine::{Change, GpuVolume, Scene, Technique};
 use voxlight_protocol::{Camera, Light, TransferFunction};
 
@@ -590,6 +592,30 @@ fn delta_scatter_capacity_and_overflow_still_equal_a_full_recompute() {
             panic!("{name}: incremental != full: {diff}");
         }
     }
+}
+
+/// The delta scatter only saves time: where its state would not fit (here a storage binding
+/// larger than the device allows), the session is made without it instead of refused.
+#[test]
+fn a_delta_scatter_that_does_not_fit_is_left_out() {
+    let volume = engine()
+        .upload_volume(&voxlight_volumes::phantom("cornell", 32).expect("cornell"))
+        .expect("upload");
+    let s = cornell_scene(1024, cornell_tf(|_, _, _| {}));
+    let p = PhotonParams {
+        segments: 2,
+        scatter_bytes: 1 << 40,
+        ..params(Invalidation::DirtyCells)
+    };
+    let budget = PhotonBudget::new(&p, &volume, 1024, 1024, p.max_passes).expect("budget");
+    assert!(
+        budget.check(engine()).is_err(),
+        "the scatter's {} bytes fit; the test needs a larger one",
+        budget.scatter_bytes
+    );
+    let photon = Photon::new(engine(), volume, &s, p).expect("fits without the scatter");
+    assert_eq!(photon.params().scatter_bytes, 0);
+    assert_eq!(photon.budget().scatter_capacity, 0);
 }
 
 /// A gather cut into many small rounds (what lavapipe's loop limit needs at larger sizes)

@@ -455,7 +455,13 @@ impl Photon {
     ) -> Result<Self, EngineError> {
         let (width, height) = (scene.viewport.width, scene.viewport.height);
         let capacity = params.max_passes.max(1).min(scene.target_iterations.max(1));
-        let budget = PhotonBudget::new(&params, &volume, width, height, capacity)?;
+        let mut params = params;
+        let mut budget = PhotonBudget::new(&params, &volume, width, height, capacity)?;
+        if params.scatter_bytes > 0 && budget.check(engine).is_err() {
+            // The delta scatter only saves time: a session that fits without it goes without.
+            params.scatter_bytes = 0;
+            budget = PhotonBudget::new(&params, &volume, width, height, capacity)?;
+        }
         budget.check(engine)?;
         let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
             engine.gpu.buffer(label, size, usage)
