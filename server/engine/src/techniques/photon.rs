@@ -170,7 +170,8 @@ pub struct UpdateReport {
     /// Of those, segments updated from the changed photons alone (their opacity unchanged).
     pub segments_delta: u64,
     /// Of those, segments the delta scatter updated (the rest were gathered from the change
-    /// grid: past its capacity, or all of them where a change reached too many pixels).
+    /// grid: past its capacity, or all of them where the changes far outnumbered them or one
+    /// reached too many pixels).
     pub segments_scattered: u64,
     /// Entries of the change list (old and new versions of the changed records; one per record
     /// whose power alone changed).
