@@ -116,7 +116,7 @@ fn segment_of(hit: vec2<f32>, t: f32) -> u32 {
 
 // The pixels whose rays can pass within the radius of p: the projection of p's cube (every
 // ray through the ball crosses the cube), rounded outwards. `fits` is false where there are
-// none, or more than one invocation may visit (COUNTER_SCATTER_OVERFLOW is then set).
+// none, or more than one invocation should visit (COUNTER_SCATTER_OVERFLOW is then set).
 struct ChangePixels {
     first: vec2<i32>,
     last: vec2<i32>,
@@ -161,7 +161,9 @@ fn change_pixels(p: vec3<f32>) -> ChangePixels {
     }
     let pixels = u32(last.x - first.x + 1) * u32(last.y - first.y + 1);
     let per_pixel = u32(ceil(2.1 * r / photon.gather_step)) + 8u;
-    if (pixels * per_pixel > photon.round_budget) {
+    // At most 2^16 iterations even where the device has no loop limit: a photon by the eye
+    // would have one invocation visit the whole screen.
+    if (pixels * per_pixel > min(photon.round_budget, 65536u)) {
         atomicAdd(&counters[COUNTER_SCATTER_OVERFLOW], 1u);
         return ChangePixels(first, last, false);
     }
