@@ -38,7 +38,8 @@ fn spatial_hit(a: vec3<f32>, b: vec3<f32>) -> bool {
 
 // Whether any sample of the segment lies in a dirty cell (SPATIAL_CELLS): every half-size cell
 // that comes within the gather radius of a changed photon is marked, so this finds every
-// change within the gather radius of a sample. Visits every lattice sample in [ta, tb) (a superset of those gathered).
+// change within the gather radius of a sample. Visits every lattice sample in [ta, tb) (a
+// superset of those gathered).
 fn cells_hit(pixel: u32, hit: vec2<f32>, ta: f32, tb: f32, dir: vec3<f32>) -> bool {
     let jitter = pixel_jitter(pixel);
     var k = first_lattice_index(hit, ta, jitter);

@@ -22,9 +22,10 @@
 // ends loops silently past its limit) sets COUNTER_SCATTER_OVERFLOW instead. Found by
 // scatter_touch, gather_mark then gives out no slots (and uses the dirty cells); found by
 // scatter_changes, the host runs `scatter_fallback`, which lists every slot's segment for the
-// delta gather, and no sum is applied. Segments past scatter_capacity are gathered as before (gather_mark), and so are all
-// of them where the changes far outnumber the segments (the host then runs scatter_fallback
-// alone: the scatter's cost follows the changes, the gather's the segments).
+// delta gather, and no sum is applied. Segments past scatter_capacity are gathered as before
+// (gather_mark), and so are all of them where the changes far outnumber the segments (the host
+// then runs scatter_fallback alone: the scatter's cost follows the changes, the gather's the
+// segments).
 // Rust twin: server/engine/src/passes/photon.rs.
 
 fn weight_word(slot: u32, j: u32) -> u32 {
@@ -177,6 +178,28 @@ fn ball_reach2(e2: f32) -> f32 {
     return 1.02 * photon.radius * photon.radius + 1e-5 * e2;
 }
 
+// A pixel's ray as seen from a change at e = p − eye (e2 = |e|²): its direction, box interval,
+// distance along the ray to p's foot (tc), and whether it passes within reach2 of p and meets
+// the box.
+struct RayNearChange {
+    dir: vec3<f32>,
+    hit: vec2<f32>,
+    tc: f32,
+    perp2: f32,
+    near: bool,
+}
+
+fn ray_near_change(pixel: u32, e: vec3<f32>, e2: f32, reach2: f32) -> RayNearChange {
+    let dir = pixel_ray(pixel);
+    let tc = dot(e, dir);
+    let perp2 = max(e2 - tc * tc, 0.0);
+    if (perp2 >= reach2) {
+        return RayNearChange(dir, vec2<f32>(0.0), tc, perp2, false);
+    }
+    let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
+    return RayNearChange(dir, hit, tc, perp2, hit.x < hit.y);
+}
+
 // The change-list entries the update listed (past the list's capacity they were dropped).
 fn change_entries() -> u32 {
     return min(atomicLoad(&counters[COUNTER_CHANGES]), photon.change_capacity);
@@ -203,17 +226,15 @@ fn scatter_touch(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
     for (var py = box.first.y; py <= box.last.y; py++) {
         for (var px = box.first.x; px <= box.last.x; px++) {
             let pixel = u32(py) * scene.width + u32(px);
-            let dir = pixel_ray(pixel);
-            let tc = dot(e, dir);
-            let perp2 = max(e2 - tc * tc, 0.0);
-            if (perp2 >= reach2) {
+            let ray = ray_near_change(pixel, e, e2, reach2);
+            if (!ray.near) {
                 continue;
             }
-            let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
+            let hit = ray.hit;
             // A step's margin at each end for the rounding of the samples' positions.
-            let half = sqrt(reach2 - perp2) + photon.gather_step;
-            let ta = max(tc - half, hit.x);
-            let tb = min(tc + half, hit.y);
+            let half = sqrt(reach2 - ray.perp2) + photon.gather_step;
+            let ta = max(ray.tc - half, hit.x);
+            let tb = min(ray.tc + half, hit.y);
             if (ta >= tb) {
                 continue;
             }
@@ -249,17 +270,14 @@ fn scatter_changes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     for (var py = first.y; py <= last.y; py++) {
         for (var px = first.x; px <= last.x; px++) {
             let pixel = u32(py) * scene.width + u32(px);
-            let dir = pixel_ray(pixel);
-            let tc = dot(e, dir);
-            let perp2 = max(e2 - tc * tc, 0.0);
-            if (perp2 >= reach2) {
+            let ray = ray_near_change(pixel, e, e2, reach2);
+            if (!ray.near) {
                 continue;
             }
-            let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
-            if (hit.x >= hit.y) {
-                continue;
-            }
-            let half = sqrt(reach2 - perp2);
+            let dir = ray.dir;
+            let hit = ray.hit;
+            let tc = ray.tc;
+            let half = sqrt(reach2 - ray.perp2);
             let jitter = pixel_jitter(pixel);
             let phase = phase_hg(dot(change.direction, -dir), scene.g);
             let k_first = max(0.0, floor((tc - half - hit.x) / step - jitter) - 1.0);

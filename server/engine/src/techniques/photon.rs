@@ -808,7 +808,7 @@ impl Photon {
             self.scattered = slots;
             if slots > 0 {
                 let changes = words[COUNTER_CHANGES];
-                if self.scatter(engine, scene, query, slots, changes, lane_budget)? {
+                if self.scatter(engine, scene, query, slots, changes)? {
                     gathered_from_changes = words[COUNTER_DELTA];
                     self.scattered = 0;
                 }
@@ -907,19 +907,9 @@ impl Photon {
         query: Query,
         slots: u32,
         changes: u32,
-        lane_budget: u32,
     ) -> Result<bool, EngineError> {
         let pass = &engine.photon;
         let bg = &self.bind_group;
-        let dispatch = Dispatch {
-            mode: MODE_UPDATE,
-            round: Round {
-                budget: lane_budget,
-                ..Round::default()
-            },
-            ..Dispatch::default()
-        };
-        self.write_uniforms(engine, scene, query, dispatch);
         let changes = changes.min(self.budget.change_entries as u32);
         if changes as u64 > SCATTER_CHANGES_PER_SEGMENT * slots as u64 {
             let mut encoder = Self::encoder(engine, "photon scatter fallback");
@@ -933,6 +923,7 @@ impl Photon {
             engine.gpu.queue.submit([encoder.finish()]);
             return Ok(true);
         }
+        self.write_scatter_uniforms(engine, scene, query);
         let mut encoder = Self::encoder(engine, "photon scatter");
         dispatch_linear(
             &mut encoder,
@@ -964,15 +955,7 @@ impl Photon {
     /// Marks the segments the update's changes can reach (`scatter_touch`, over at most
     /// `entries` change-list entries), for gather_mark to take instead of the dirty cells.
     fn touch(&self, engine: &Engine, scene: &Scene, query: Query, entries: u32) {
-        let dispatch = Dispatch {
-            mode: MODE_UPDATE,
-            round: Round {
-                budget: self.round_budget(engine),
-                ..Round::default()
-            },
-            ..Dispatch::default()
-        };
-        self.write_uniforms(engine, scene, query, dispatch);
+        self.write_scatter_uniforms(engine, scene, query);
         engine.gpu.queue.write_buffer(
             &self.counters,
             COUNTER_TOUCH as u64 * 4,
@@ -987,6 +970,21 @@ impl Photon {
             entries,
         );
         engine.gpu.queue.submit([encoder.finish()]);
+    }
+
+    /// The uniforms of the scatter passes: an update's, with the loop budget of one invocation
+    /// (`change_pixels` in photon_scatter.wgsl checks a change's pixels against it; the marks
+    /// and the scatter must decide alike).
+    fn write_scatter_uniforms(&self, engine: &Engine, scene: &Scene, query: Query) {
+        let dispatch = Dispatch {
+            mode: MODE_UPDATE,
+            round: Round {
+                budget: self.round_budget(engine),
+                ..Round::default()
+            },
+            ..Dispatch::default()
+        };
+        self.write_uniforms(engine, scene, query, dispatch);
     }
 
     /// The counter words (not the dirty bits; blocks on the GPU).
@@ -1160,9 +1158,7 @@ impl Photon {
             }
         }
         self.grid_and_gather(engine, scene, MODE_UPDATE, query)?;
-        let bytes = engine.gpu.read_buffer(&self.counters)?;
-        let words: &[u32] = bytemuck::try_cast_slice(&bytes)
-            .map_err(|e| EngineError::Gpu(format!("photon counters readback: {e}")))?;
+        let words = self.counter_words(engine)?;
         let mask = |axis: usize| {
             words[COUNTER_SPATIAL + 2 * axis] as u64
                 | (words[COUNTER_SPATIAL + 2 * axis + 1] as u64) << 32
