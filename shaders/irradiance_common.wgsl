@@ -95,7 +95,9 @@ struct Request {
     colour_lo: u32,
     colour_hi: u32,
     delta: f32,
-    pad1: u32,
+    // FLAG_TRACED_DIRECT: the sum of the centre's direct irradiance luminance (the lights'
+    // share the render pass traces itself), which only sets Eq. 5's bound.
+    direct_sum: f32,
     // The finished entry (state REQUEST_DONE).
     entry: CacheEntry,
 }
@@ -123,6 +125,10 @@ const FLAG_MARCHED_VIEW: u32 = 16u;
 const FLAG_VALIDATE_HITS: u32 = 32u;
 // Irradiance samples of that fresh estimate.
 const VALIDATION_SAMPLES: u32 = 8u;
+// The render pass traces the directional and point lights' direct light at every event (a
+// shadow ray each), and entries hold only the rest of the irradiance (the environment and light
+// scattered by the medium): no shadow edge is ever interpolated.
+const FLAG_TRACED_DIRECT: u32 = 64u;
 
 const REQUEST_PENDING: u32 = 0u;
 const REQUEST_DONE: u32 = 1u;
@@ -457,12 +463,20 @@ fn uniform_sphere(u1: f32, u2: f32) -> vec3<f32> {
     return vec3<f32>(s * cos(phi), s * sin(phi), z);
 }
 
-// One sample of the irradiance E(y) = ∫ L(y, ω) dω (Eq. 4): the directional and point lights
-// by next-event estimation with marched shadow rays, everything else (the environment and, with more than one bounce,
+fn traced_direct() -> bool {
+    return (params.flags & FLAG_TRACED_DIRECT) != 0u;
+}
+
+// One sample of the irradiance E(y) = ∫ L(y, ω) dω (Eq. 4) that entries hold: the directional
+// and point lights by next-event estimation with marched shadow rays (not with
+// FLAG_TRACED_DIRECT), everything else (the environment and, with more than one bounce,
 // light scattered by the medium) along one uniformly chosen direction, weight 4π.
 fn irradiance_sample(y: vec3<f32>, rng: ptr<function, Rng>) -> vec3<f32> {
     marched_shadows = true;
-    var e = direct_irradiance(y, rng);
+    var e = vec3<f32>(0.0);
+    if (!traced_direct()) {
+        e = direct_irradiance(y, rng);
+    }
     let u1 = rng_next(rng);
     let u2 = rng_next(rng);
     let w = uniform_sphere(u1, u2);

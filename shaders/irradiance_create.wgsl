@@ -11,6 +11,8 @@
 const SAMPLES_PER_ROUND: u32 = 9u;
 
 var<workgroup> point_sums: array<vec4<f32>, 64>;
+// FLAG_TRACED_DIRECT: the direct irradiance luminance of each centre sample.
+var<workgroup> direct_sums: array<f32, SAMPLES_PER_ROUND>;
 var<workgroup> hist: array<atomic<u32>, 4>;
 
 @compute @workgroup_size(64)
@@ -40,6 +42,16 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         let e = irradiance_sample(y, &rng);
         let lum = luminance(e);
         estimate = vec4<f32>(e, lum * lum);
+        if (point == 0u && traced_direct()) {
+            // What the render pass adds to this entry's light: Eq. 5 bounds the entry's error
+            // relative to the whole irradiance a pixel shows, not to its indirect share alone.
+            // It only decides when the estimate may stop, so its rays are not recorded: the
+            // entry's value is an estimate of the indirect light whatever they find.
+            recording = false;
+            marched_shadows = true;
+            direct_sums[sample_index] = luminance(direct_irradiance(y, &rng));
+            marched_shadows = false;
+        }
         atomicOr(&hist[0], recorded_opacity.x);
         atomicOr(&hist[1], recorded_opacity.y);
         atomicOr(&hist[2], recorded_colour.x);
@@ -65,6 +77,11 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     for (var p = 0u; p < 7u; p++) {
         r.sums[p] += point_sums[p];
     }
+    if (traced_direct()) {
+        for (var k = 0u; k < SAMPLES_PER_ROUND; k++) {
+            r.direct_sum += direct_sums[k];
+        }
+    }
     r.count += SAMPLES_PER_ROUND;
     r.opacity_lo |= atomicLoad(&hist[0]);
     r.opacity_hi |= atomicLoad(&hist[1]);
@@ -75,8 +92,10 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     let mean_lum = luminance(mean);
     let variance = max(0.0, (r.sums[0].w - n * mean_lum * mean_lum) / max(n - 1.0, 1.0));
     // Eq. 5: the 95% confidence interval within γ/(γ + 1) of the estimate (of the dark floor
-    // where the estimate is darker: there the error is absolute, not relative).
-    let bound = params.gamma / (params.gamma + 1.0) * max(mean_lum, params.dark_floor);
+    // where the estimate is darker: there the error is absolute, not relative). An indirect
+    // entry's estimate is relative to all the light at its centre (direct_sum is 0 otherwise).
+    let shown = mean_lum + r.direct_sum / n;
+    let bound = params.gamma / (params.gamma + 1.0) * max(shown, params.dark_floor);
     let converged = 1.96 * sqrt(variance / n) <= bound;
     if ((r.count >= params.min_samples && converged) || r.count >= params.max_samples) {
         var entry: CacheEntry;

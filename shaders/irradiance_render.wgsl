@@ -3,9 +3,11 @@
 // tracked, or picked along a jittered march: FLAG_MARCHED_VIEW); where
 // the cache covers that point its irradiance is used (isotropic phase function: radiance =
 // albedo · E / 4π), elsewhere the path tracer continues from one of them (plain MCVR) and
-// that miss claims the creation of a new entry there: the deepest octree node holding the point
-// (object-space locking) or the block (screen-space locking, after a rejection test on the
-// block's share of misses). Rust twin: server/engine/src/passes/irradiance.rs.
+// that miss claims the creation of a new entry there: the deepest octree node holding the
+// point (object-space locking) or the block (screen-space locking, after a rejection test on
+// the block's share of misses). With FLAG_TRACED_DIRECT (beyond the paper) the directional and
+// point lights' direct light is traced at every event and the cache holds only the rest.
+// Rust twin: server/engine/src/passes/irradiance.rs.
 
 var<workgroup> block_rays: atomic<u32>;
 var<workgroup> block_misses: atomic<u32>;
@@ -154,43 +156,70 @@ fn main(
             }
         }
         var radiance = scene.env_radiance * transmit;
-        var cached_sum = vec3<f32>(0.0);
+        var scattered = vec3<f32>(0.0);
         var misses = 0u;
         var miss = 0u;
-        var miss_node = 0u;
-        for (var j = 0u; j < picks; j++) {
-            var found = false;
-            if (cache_on) {
-                let cached = cache_lookup(picked_position[j]);
-                atomicAdd(&block_rays, 1u);
-                if (cached.weight > 0.0) {
-                    cached_sum += picked_albedo[j] * cached.irradiance * INV_4PI;
-                    found = true;
-                } else {
-                    miss_node_of[j] = cached.node;
+        if (traced_direct()) {
+            // The directional and point lights' direct light is traced at every event (a shadow
+            // ray per light each: cheap next to the march, and it removes most of the variance
+            // of where along the ray the event lies); the rest, from one event chosen uniformly
+            // for all of them, comes from the cache (which holds only that) or a traced path.
+            for (var j = 0u; j < picks; j++) {
+                if (any(picked_albedo[j] > vec3<f32>(0.0))) {
+                    scattered += picked_albedo[j] * direct_light(picked_position[j], dir, &rng);
                 }
             }
-            if (!found) {
-                // One miss, chosen uniformly, is path traced for all of them.
-                misses += 1u;
-                if (rng_next(&rng) * f32(misses) < 1.0) {
-                    miss = j;
+            if (picks > 0u) {
+                miss = min(u32(rng_next(&rng) * f32(picks)), picks - 1u);
+                misses = 1u;
+                if (cache_on) {
+                    let cached = cache_lookup(picked_position[miss]);
+                    atomicAdd(&block_rays, 1u);
+                    if (cached.weight > 0.0) {
+                        scattered += f32(picks) * picked_albedo[miss] * cached.irradiance * INV_4PI;
+                        misses = 0u;
+                    } else {
+                        miss_node_of[miss] = cached.node;
+                    }
+                }
+            }
+        } else {
+            for (var j = 0u; j < picks; j++) {
+                var found = false;
+                if (cache_on) {
+                    let cached = cache_lookup(picked_position[j]);
+                    atomicAdd(&block_rays, 1u);
+                    if (cached.weight > 0.0) {
+                        scattered += picked_albedo[j] * cached.irradiance * INV_4PI;
+                        found = true;
+                    } else {
+                        miss_node_of[j] = cached.node;
+                    }
+                }
+                if (!found) {
+                    // One miss, chosen uniformly, is path traced for all of them.
+                    misses += 1u;
+                    if (rng_next(&rng) * f32(misses) < 1.0) {
+                        miss = j;
+                    }
                 }
             }
         }
-        var scattered = cached_sum;
         if (misses > 0u) {
             let p = picked_position[miss];
             let albedo = picked_albedo[miss];
             var traced = vec3<f32>(0.0);
             if (any(albedo > vec3<f32>(0.0))) {
-                traced = albedo * direct_light(p, dir, &rng);
+                if (!traced_direct()) {
+                    traced = albedo * direct_light(p, dir, &rng);
+                }
                 let u1 = rng_next(&rng);
                 let u2 = rng_next(&rng);
                 let next = sample_hg(dir, scene.g, u1, u2);
                 traced += trace_radiance(p, next, albedo, 1u, params.bounces, &rng);
             }
-            scattered += f32(misses) * traced;
+            // A traced event stands for `misses` events (FLAG_TRACED_DIRECT: for all of them).
+            scattered += f32(select(misses, picks, traced_direct())) * traced;
             if (cache_on) {
                 atomicAdd(&block_misses, misses);
                 aux = vec4<f32>(p, aux.w);

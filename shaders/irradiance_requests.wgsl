@@ -146,7 +146,7 @@ fn main(@builtin(local_invocation_index) t: u32) {
                 r.colour_lo = 0u;
                 r.colour_hi = 0u;
                 r.delta = entry_delta(position);
-                r.pad1 = 0u;
+                r.direct_sum = 0.0;
                 requests[slot] = r;
                 atomicStore(&words[held_base + lock], LOCK_HELD);
                 atomicAdd(&words[COUNTER_ISSUED], 1u);

@@ -9,7 +9,9 @@ mod common;
 use std::sync::Arc;
 
 use common::*;
-use voxlight_engine::techniques::irradiance::{Irradiance, IrradianceConfig, Locking, ViewEvent};
+use voxlight_engine::techniques::irradiance::{
+    CachedLight, Irradiance, IrradianceConfig, Locking, ViewEvent,
+};
 use voxlight_engine::{GpuVolume, Renderer, Scene, Technique};
 use voxlight_protocol::{Light, TfPoint, TransferFunction};
 use voxlight_volumes::Volume;
@@ -550,6 +552,110 @@ fn validating_hits_shrinks_zones_a_fresh_estimate_contradicts() {
     assert!(
         with > without,
         "validated {with} reductions, pairwise alone {without}"
+    );
+}
+
+#[test]
+fn tracing_the_direct_light_keeps_shadow_edges_where_caching_it_blurs_them() {
+    // The hard shadow edge under single scattering, with a dim sky so that there is indirect
+    // light to cache: a cache of all the light carries the lit side's irradiance across the
+    // edge (a zone sees only its own stencil); one that holds only the sky's leaves the edge
+    // to shadow rays. Built, then rendered long with the cache fixed, so that what is left
+    // against raymarch's converged picture is the cache's bias, not noise.
+    let (volume, mut s) = shadow_edge_scene();
+    s.lights.push(Light::Environment {
+        radiance: [0.05; 3],
+    });
+    let want = reference("raymarch", volume.clone(), &s, 1024);
+    let engine = engine();
+    let error = |cache, cached_light| {
+        let config = fixed(IrradianceConfig {
+            cache,
+            cached_light,
+            bounces: 1,
+            // The paper's largest zones.
+            max_radius_voxels: 16.0,
+            ..Default::default()
+        });
+        let mut t = Irradiance::new(engine, volume.clone(), &s, config).unwrap();
+        for _ in 0..40 {
+            t.frame(engine, &s, true).unwrap();
+        }
+        let stats = t.cache_stats();
+        assert!(
+            !cache || stats.hit_rate > 0.25,
+            "{cached_light:?}: {stats:?}"
+        );
+        t.apply(engine, &s, &voxlight_engine::Change::Camera)
+            .unwrap();
+        for _ in 0..256 {
+            t.frame(engine, &s, false).unwrap();
+        }
+        let (hdr, _) = t.read_estimate(engine).unwrap();
+        (
+            relative_rms(&hdr, &want),
+            lum_of(mean(&hdr)) / lum_of(mean(&want)),
+        )
+    };
+    // What noise alone leaves: plain Monte Carlo, the same frames.
+    let (plain, _) = error(false, CachedLight::Indirect);
+    let (all, all_mean) = error(true, CachedLight::All);
+    let (indirect, indirect_mean) = error(true, CachedLight::Indirect);
+    let report = format!(
+        "relative RMS against raymarch: plain {plain}, indirect cache {indirect} (mean {indirect_mean}), all {all} (mean {all_mean})"
+    );
+    eprintln!("{report}");
+    assert!((indirect_mean - 1.0).abs() < 0.01, "{report}");
+    assert!(indirect < 1.15 * plain, "{report}");
+    assert!(all > 1.4 * plain, "{report}");
+}
+
+#[test]
+fn plain_monte_carlo_with_the_direct_light_at_every_event_stays_unbiased_and_gets_less_noisy() {
+    // Without a cache the render pass traces the lights at each of `view_picks` events and one
+    // path on from one of them. Single scattering under one hard light (where where along the
+    // ray the event lies is most of the noise): raymarch's mean, and far less variance with
+    // four events than with one; multiple scattering with an environment: pathtrace's mean.
+    let engine = engine();
+    let plain = |volume: &Arc<GpuVolume>, s: &Scene, bounces, view_picks| {
+        let config = IrradianceConfig {
+            cache: false,
+            priorities: false,
+            bounces,
+            view_picks,
+            ..Default::default()
+        };
+        let mut t = Irradiance::new(engine, volume.clone(), s, config).unwrap();
+        for _ in 0..64 {
+            t.frame(engine, s, true).unwrap();
+        }
+        let (hdr, variance) = t.read_estimate(engine).unwrap();
+        (
+            lum_of(mean(&hdr)),
+            variance.iter().map(|&v| v as f64).sum::<f64>(),
+        )
+    };
+    let (volume, s) = shadow_edge_scene();
+    let want = lum_of(mean(&reference("raymarch", volume.clone(), &s, 256)));
+    let (one, one_noise) = plain(&volume, &s, 1, 1);
+    let (four, four_noise) = plain(&volume, &s, 1, 4);
+    for (events, got) in [(1, one), (4, four)] {
+        assert!(
+            (got / want - 1.0).abs() < 0.02,
+            "{events} events: mean {got} vs raymarch {want}"
+        );
+    }
+    assert!(
+        four_noise < 0.6 * one_noise,
+        "variance of the pixel means: 1 event {one_noise}, 4 events {four_noise}"
+    );
+    let (_, volume) = sphere(40);
+    let s = lit_sphere(48);
+    let want = lum_of(mean(&reference("pathtrace", volume.clone(), &s, 256)));
+    let (got, _) = plain(&volume, &s, IrradianceConfig::default().bounces, 4);
+    assert!(
+        (got / want - 1.0).abs() < 0.02,
+        "mean {got} vs pathtrace {want}"
     );
 }
 

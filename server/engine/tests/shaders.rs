@@ -165,7 +165,7 @@ fn rust_and_wgsl_layouts_agree() {
             "Request",
             size_of::<Request>(),
             fields!(Request: position, key, normal, lock, sums, count, state, opacity_lo,
-                opacity_hi, colour_lo, colour_hi, delta, pad1, entry),
+                opacity_hi, colour_lo, colour_hi, delta, direct_sum, entry),
         );
         assert_layout(
             &module,

@@ -98,7 +98,8 @@ pub struct Request {
     pub colour_lo: u32,
     pub colour_hi: u32,
     pub delta: f32,
-    pub pad1: u32,
+    /// Indirect caches: the sum of the centre's direct irradiance luminance (Eq. 5's bound).
+    pub direct_sum: f32,
     pub entry: CacheEntry,
 }
 
@@ -122,6 +123,7 @@ pub const FLAG_NO_CREATION: u32 = 4;
 pub const FLAG_SAMPLED_HISTORYGRAMS: u32 = 8;
 pub const FLAG_MARCHED_VIEW: u32 = 16;
 pub const FLAG_VALIDATE_HITS: u32 = 32;
+pub const FLAG_TRACED_DIRECT: u32 = 64;
 
 pub const COUNTER_HITS: usize = 0;
 pub const COUNTER_MISSES: usize = 1;

@@ -21,7 +21,7 @@ pub const ALL: &[(&str, &str)] = &[
     ),
     (
         "irradiance",
-        "Monte-Carlo volume rendering whose first scattering event reads a parallel irradiance cache built while rendering (Khlebnikov et al. 2014), with multiple scattering; TF edits keep the entries they cannot change (isotropic phase function; zones can carry a shadow edge a few voxels: slightly biased there)",
+        "Monte-Carlo volume rendering whose first scattering event reads a parallel irradiance cache built while rendering (Khlebnikov et al. 2014), with multiple scattering; the lights' direct light is traced with shadow rays and the cache holds the indirect light (isotropic phase function; zones interpolate it over a few voxels: slightly biased there); TF edits keep the entries they cannot change",
     ),
     (
         "photon",

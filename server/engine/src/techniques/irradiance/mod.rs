@@ -37,8 +37,9 @@ use crate::passes::irradiance::{
     BLOCK_HEIGHT, BLOCK_WIDTH, COUNTER_CREATED, COUNTER_DROPPED, COUNTER_ENTRIES, COUNTER_HITS,
     COUNTER_ISSUED, COUNTER_LOST, COUNTER_MISSES, COUNTER_PENDING, COUNTER_REDUCTIONS,
     COUNTER_WORDS, CacheEntry, DISPATCH_STRIDE, DispatchInfo, FLAG_CACHE, FLAG_MARCHED_VIEW,
-    FLAG_NO_CREATION, FLAG_SAMPLED_HISTORYGRAMS, FLAG_SCREEN_LOCKING, FLAG_VALIDATE_HITS,
-    IrradianceBindings, IrradianceParams, PRIORITY_UNSAMPLED, Request, UPDATE_WORKGROUP,
+    FLAG_NO_CREATION, FLAG_SAMPLED_HISTORYGRAMS, FLAG_SCREEN_LOCKING, FLAG_TRACED_DIRECT,
+    FLAG_VALIDATE_HITS, IrradianceBindings, IrradianceParams, PRIORITY_UNSAMPLED, Request,
+    UPDATE_WORKGROUP,
 };
 use crate::technique::{StepReport, Technique, TechniqueStats};
 use crate::techniques::progressive::{Estimator, Progressive, accum_bytes};
@@ -90,11 +91,26 @@ pub enum ViewEvent {
     Marched,
 }
 
+/// What a cache entry's irradiance holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CachedLight {
+    /// All the light arriving at the entry, the directional and point lights' direct light
+    /// included (the paper). Its shadow edges are interpolated across zones.
+    All,
+    /// Only the indirect light (the environment and light the medium scattered): the render
+    /// pass traces the directional and point lights' direct light at its event with a shadow
+    /// ray. Where there is no indirect light (single scattering without an environment) the
+    /// cache holds all the light instead.
+    Indirect,
+}
+
 /// The knobs of `irradiance`; the defaults are the paper's Table 1.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct IrradianceConfig {
     /// Use the cache (false: plain MCVR with the same estimator, the paper's baseline).
     pub cache: bool,
+    /// What entries hold (beyond the paper: `Indirect` by default).
+    pub cached_light: CachedLight,
     pub locking: Locking,
     /// Draw the blocks to render by "expected gain" (Eq. 12) instead of in turn.
     pub priorities: bool,
@@ -138,9 +154,11 @@ pub struct IrradianceConfig {
     pub invalidation: Invalidation,
     pub historygrams: Historygrams,
     pub view_event: ViewEvent,
-    /// Scattering events per camera sample with `ViewEvent::Marched` (1–16): drawn by
-    /// systematic resampling along the march, cached ones cost a lookup each, and one of those
-    /// the cache misses is path traced for all of them.
+    /// Scattering events per camera sample with `ViewEvent::Marched` (1–16), drawn by
+    /// systematic resampling along the march. Where the direct light is traced (no cache, or
+    /// `CachedLight::Indirect`) each event gets a shadow ray per light and one of them, chosen
+    /// uniformly, the cache lookup or the traced path for the rest; with `CachedLight::All`
+    /// each costs a lookup and one of those the cache misses is path traced for all of them.
     pub view_picks: u32,
     /// Beyond the paper: the update also estimates the irradiance afresh at its point and
     /// shrinks every entry whose prediction there lies outside that estimate's 95% interval
@@ -162,6 +180,7 @@ impl Default for IrradianceConfig {
     fn default() -> Self {
         Self {
             cache: true,
+            cached_light: CachedLight::Indirect,
             locking: Locking::Object,
             priorities: true,
             bounces: DEFAULT_BOUNCES,
@@ -187,9 +206,10 @@ impl Default for IrradianceConfig {
             invalidation: Invalidation::Historygram,
             historygrams: Historygrams::Samples,
             view_event: ViewEvent::Marched,
-            // More events make cached samples less noisy but cost a second march and a lookup
-            // each; at the cache coverage reached on lavapipe that did not pay (benchmarks.md).
-            view_picks: 1,
+            // A second event shares the march and costs a shadow ray per light: with multiple
+            // scattering plain MCVR's variance per sample fell by 11–29% at the same frame time
+            // on lavapipe; more did not pay (docs/benchmarks.md).
+            view_picks: 2,
             validate_hits: false,
             rebuild_interval: Duration::from_millis(1000),
             hit_rate_window: Duration::from_millis(100),
@@ -761,10 +781,25 @@ impl Irradiance {
         self.config.cache && scene.params.g.abs() <= ISOTROPIC_G
     }
 
+    /// Whether the render pass traces the directional and point lights' direct light at every
+    /// event: always but with a cache that holds all the light (without a cache this is plain
+    /// MCVR's best estimator).
+    fn traced_direct(&self, scene: &Scene) -> bool {
+        !self.cache_active(scene) || self.cached_light(scene) == CachedLight::Indirect
+    }
+
+    /// What the entries hold for this scene (`cached_light`).
+    pub fn cached_light(&self, scene: &Scene) -> CachedLight {
+        cached_light(&self.config, scene)
+    }
+
     fn write_params(&self, engine: &Engine, scene: &Scene) {
         let mut flags = 0;
         if self.cache_active(scene) {
             flags |= FLAG_CACHE;
+        }
+        if self.traced_direct(scene) {
+            flags |= FLAG_TRACED_DIRECT;
         }
         if self.config.locking == Locking::Screen {
             flags |= FLAG_SCREEN_LOCKING;
@@ -1578,6 +1613,19 @@ impl Irradiance {
     }
 }
 
+/// What a cache configured so holds for this scene: the indirect light only where asked for
+/// and where there is some (more than one bounce, or an environment); else all the light.
+pub fn cached_light(config: &IrradianceConfig, scene: &Scene) -> CachedLight {
+    let has_indirect = config.bounces > 1
+        || scene.lights.iter().any(|light| {
+            matches!(light, Light::Environment { radiance } if radiance.iter().any(|&c| c > 0.0))
+        });
+    match config.cached_light {
+        CachedLight::Indirect if has_indirect => CachedLight::Indirect,
+        _ => CachedLight::All,
+    }
+}
+
 /// Luminance of the irradiance a point of the volume receives at most, unshadowed: every
 /// directional light's, every point light's at the volume's centre, and 4π times the
 /// environment's radiance.
@@ -1902,5 +1950,38 @@ mod tests {
             assert!(validate(&config).is_err(), "{config:?}");
         }
         validate(&IrradianceConfig::default()).unwrap();
+    }
+
+    #[test]
+    fn an_indirect_cache_holds_all_the_light_where_there_is_no_indirect_light() {
+        let sun = Light::Directional {
+            direction: [0.0, 0.0, -1.0],
+            irradiance: [1.0; 3],
+        };
+        let sky = |radiance| Light::Environment { radiance };
+        let scene = |lights| Scene {
+            lights,
+            ..Scene::default()
+        };
+        let config = |bounces, cached_light| IrradianceConfig {
+            bounces,
+            cached_light,
+            ..Default::default()
+        };
+        use CachedLight::{All, Indirect};
+        let cases = [
+            (config(DEFAULT_BOUNCES, Indirect), vec![sun], Indirect),
+            (config(1, Indirect), vec![sun], All),
+            (config(1, Indirect), vec![sun, sky([0.0; 3])], All),
+            (config(1, Indirect), vec![sun, sky([0.1; 3])], Indirect),
+            (config(DEFAULT_BOUNCES, All), vec![sun], All),
+        ];
+        for (config, lights, want) in cases {
+            assert_eq!(
+                cached_light(&config, &scene(lights.clone())),
+                want,
+                "{lights:?}"
+            );
+        }
     }
 }
