@@ -1352,6 +1352,7 @@ const OPTION_CONTROLS = {
     { key: 'locking', label: 'Locking', title: 'Locks while an entry is created: octree node (object) or image block (screen)', values: ['object', 'screen'] },
     { key: 'priorities', label: 'Priorities', title: 'Render image blocks by expected gain instead of in turn', values: [true, false] },
     { key: 'max_radius_voxels', label: 'Zone radius', title: 'Largest cache-zone radius in voxels', values: [1, 2, 4, 8, 16] },
+    { key: 'cached_light', label: 'Cached light', title: 'What cache entries hold: the indirect light (lights traced with shadow rays) or all of it (the paper)', values: ['indirect', 'all'] },
   ],
 };
 

@@ -117,6 +117,13 @@ pub struct IrradianceOptions {
     /// What a TF edit does to the cache.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub invalidation: Option<CacheInvalidation>,
+    /// What cache entries hold: the indirect light only (the lights' direct light traced at
+    /// every scattering event) or all of it (the paper).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cached_light: Option<CachedLight>,
+    /// Scattering events per camera sample along the view ray.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub view_picks: Option<u32>,
 }
 
 /// `irradiance`: object-space (octree node) or screen-space (image block) locks.
@@ -125,6 +132,17 @@ pub struct IrradianceOptions {
 pub enum Locking {
     Object,
     Screen,
+}
+
+/// `irradiance`: what cache entries hold.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CachedLight {
+    /// The indirect light only (the environment and light the medium scattered); the
+    /// directional and point lights' direct light is traced with shadow rays (the default).
+    Indirect,
+    /// All the light, the lights' direct light included, as the paper.
+    All,
 }
 
 /// `irradiance`: what a TF edit does to the cache.
@@ -203,7 +221,9 @@ impl TechniqueOptions {
             max_radius_voxels,
             gamma,
             epsilon,
-            invalidation
+            invalidation,
+            cached_light,
+            view_picks
         );
         self
     }

@@ -2,8 +2,8 @@
 //! Each technique's own constructor still checks what only it can (memory, device limits).
 
 use voxlight_protocol::{
-    CacheInvalidation, IrradianceOptions, Locking, ManylightOptions, PhotonInvalidation,
-    PhotonOptions, TechniqueOptions, Transmittance,
+    CacheInvalidation, CachedLight, IrradianceOptions, Locking, ManylightOptions,
+    PhotonInvalidation, PhotonOptions, TechniqueOptions, Transmittance,
 };
 
 use crate::passes::manylight::{MAX_NODES, TransmittanceMode};
@@ -54,6 +54,7 @@ pub fn validate(options: &TechniqueOptions) -> Result<(), String> {
     )?;
     in_range("irradiance.gamma", i.gamma, 1e-3, 1.0)?;
     in_range("irradiance.epsilon", i.epsilon, 1e-3, 1.0)?;
+    in_range("irradiance.view_picks", i.view_picks, 1, 16)?;
     Ok(())
 }
 
@@ -114,6 +115,12 @@ pub fn irradiance_config(options: &IrradianceOptions) -> IrradianceConfig {
             Some(CacheInvalidation::Historygram) => irradiance::Invalidation::Historygram,
             Some(CacheInvalidation::Clear) => irradiance::Invalidation::Clear,
         },
+        cached_light: match options.cached_light {
+            None => d.cached_light,
+            Some(CachedLight::Indirect) => irradiance::CachedLight::Indirect,
+            Some(CachedLight::All) => irradiance::CachedLight::All,
+        },
+        view_picks: options.view_picks.unwrap_or(d.view_picks),
         ..d
     }
 }
@@ -170,6 +177,11 @@ pub fn defaults_of(technique: &str) -> TechniqueOptions {
                     irradiance::Invalidation::Historygram => CacheInvalidation::Historygram,
                     irradiance::Invalidation::Clear => CacheInvalidation::Clear,
                 }),
+                cached_light: Some(match i.cached_light {
+                    irradiance::CachedLight::Indirect => CachedLight::Indirect,
+                    irradiance::CachedLight::All => CachedLight::All,
+                }),
+                view_picks: Some(i.view_picks),
             };
         }
         _ => {}
@@ -222,7 +234,8 @@ mod tests {
         let options: TechniqueOptions = serde_json::from_str(
             r#"{"photon":{"photons_per_pass":4096,"invalidation":"spatial3x64","radius":0.02},
                 "manylight":{"virtual_lights":1000,"transmittance":"avsm_point","face_res":48},
-                "irradiance":{"locking":"screen","priorities":false,"invalidation":"clear"}}"#,
+                "irradiance":{"locking":"screen","priorities":false,"invalidation":"clear",
+                              "cached_light":"all","view_picks":4}}"#,
         )
         .unwrap();
         validate(&options).unwrap();
@@ -239,6 +252,8 @@ mod tests {
         assert_eq!(i.locking, irradiance::Locking::Screen);
         assert!(!i.priorities);
         assert_eq!(i.invalidation, irradiance::Invalidation::Clear);
+        assert_eq!(i.cached_light, irradiance::CachedLight::All);
+        assert_eq!(i.view_picks, 4);
         assert!(i.cache);
     }
 
@@ -252,6 +267,13 @@ mod tests {
         let mut options = TechniqueOptions::default();
         options.irradiance.gamma = Some(f32::NAN);
         assert!(validate(&options).unwrap_err().contains("irradiance.gamma"));
+        let mut options = TechniqueOptions::default();
+        options.irradiance.view_picks = Some(0);
+        assert!(
+            validate(&options)
+                .unwrap_err()
+                .contains("irradiance.view_picks")
+        );
         let mut options = TechniqueOptions::default();
         options.photon.photons_per_pass = Some(0);
         assert!(
