@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use serde_json::json;
 use voxlight_engine::techniques::irradiance::{
-    Historygrams, Invalidation, Irradiance, IrradianceConfig, Locking, ViewEvent,
+    CachedLight, Historygrams, Invalidation, Irradiance, IrradianceConfig, Locking, ViewEvent,
 };
 use voxlight_engine::{Change, Engine, GpuVolume, Scene, Technique};
 use voxlight_protocol::{Camera, Light, TransferFunction, Viewport};
@@ -157,6 +157,13 @@ fn dataset(data_dir: &Path, name: &str, max_dim: u32) -> anyhow::Result<voxlight
     Ok(volume)
 }
 
+pub fn cached_light_name(light: CachedLight) -> &'static str {
+    match light {
+        CachedLight::All => "all",
+        CachedLight::Indirect => "indirect",
+    }
+}
+
 pub fn view_event_name(event: ViewEvent) -> &'static str {
     match event {
         ViewEvent::Marched => "marched",
@@ -164,15 +171,15 @@ pub fn view_event_name(event: ViewEvent) -> &'static str {
     }
 }
 
-/// Plain MCVR with the same camera-ray estimator as the cache runs (`view_event`).
-fn plain(bounces: u32, view_event: ViewEvent) -> IrradianceConfig {
+/// Plain MCVR with the same camera-ray estimator as the cache runs (`view_event`,
+/// `view_picks`).
+fn plain(config: &IrradianceConfig) -> IrradianceConfig {
     IrradianceConfig {
         cache: false,
         priorities: false,
-        // Without a cache every event would be path traced: one is the cheapest.
-        view_picks: 1,
-        bounces,
-        view_event,
+        bounces: config.bounces,
+        view_event: config.view_event,
+        view_picks: config.view_picks,
         ..IrradianceConfig::default()
     }
 }
@@ -256,13 +263,16 @@ fn reference(
     volume: &Arc<GpuVolume>,
     scene: &Scene,
     spp: u32,
-    bounces: u32,
+    config: &IrradianceConfig,
 ) -> anyhow::Result<Reference> {
     let scene = Scene {
         seed: scene.seed ^ 0x5eed_0001,
         ..scene.clone()
     };
-    let config = plain(bounces, IrradianceConfig::default().view_event);
+    let config = plain(&IrradianceConfig {
+        view_event: IrradianceConfig::default().view_event,
+        ..*config
+    });
     let mut technique = Irradiance::new(engine, Arc::clone(volume), &scene, config)?;
     for _ in 0..spp {
         technique.frame(engine, &scene, true)?;
@@ -373,6 +383,10 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
         .data_dir
         .context("bench convergence needs ../shared/data (or --data)")?;
     let engine = Engine::new()?;
+    let config = IrradianceConfig {
+        bounces: options.bounces,
+        ..options.config
+    };
     let mut cases = Vec::new();
     let mut controls = Vec::new();
     for name in options.datasets {
@@ -387,13 +401,8 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
             );
             warm_up(&engine, &gpu_volume, &scene)?;
             let started = Instant::now();
-            let reference = reference(
-                &engine,
-                &gpu_volume,
-                &scene,
-                options.reference_spp,
-                options.bounces,
-            )?;
+            let reference =
+                reference(&engine, &gpu_volume, &scene, options.reference_spp, &config)?;
             eprintln!(
                 "{name}, {lights} light(s): reference {} spp in {:.1} s (its own relative noise {:.4})",
                 options.reference_spp,
@@ -407,21 +416,16 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
                 .into_iter()
                 .flat_map(|p| [(p, Locking::Object), (p, Locking::Screen)])
                 .collect();
-            let mut baseline = Irradiance::new(
-                &engine,
-                Arc::clone(&gpu_volume),
-                &scene,
-                plain(options.bounces, options.config.view_event),
-            )?;
+            let mut baseline =
+                Irradiance::new(&engine, Arc::clone(&gpu_volume), &scene, plain(&config))?;
             let mut techniques = variants
                 .iter()
                 .map(|&(priorities, locking)| {
                     let config = IrradianceConfig {
                         locking,
                         priorities,
-                        bounces: options.bounces,
                         frame_time: Some(Duration::from_millis(1)),
-                        ..options.config
+                        ..config
                     };
                     Irradiance::new(&engine, Arc::clone(&gpu_volume), &scene, config)
                 })
@@ -436,7 +440,7 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
                 IrradianceConfig {
                     priorities: true,
                     frame_time: Some(Duration::from_millis(1)),
-                    ..plain(options.bounces, options.config.view_event)
+                    ..plain(&config)
                 },
             )?;
             let mut control_run = Errors::default();
@@ -581,6 +585,8 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
         "gamma": options.config.gamma,
         "validate_hits": options.config.validate_hits,
         "view_event": view_event_name(options.config.view_event),
+        "cached_light": cached_light_name(options.config.cached_light),
+        "view_picks": options.config.view_picks,
         "cases": cases,
         "mean_error_ratio": mean,
         "priorities_without_cache": controls,
@@ -644,19 +650,10 @@ pub fn tf_edit(options: &IrradianceTfEditBench) -> anyhow::Result<serde_json::Va
                 tf: edit.tf.clone(),
                 ..base.clone()
             };
-            let reference = reference(
-                &engine,
-                &gpu_volume,
-                &scene,
-                options.reference_spp,
-                config.bounces,
-            )?;
-            let mut baseline = Irradiance::new(
-                &engine,
-                Arc::clone(&gpu_volume),
-                &scene,
-                plain(config.bounces, config.view_event),
-            )?;
+            let reference =
+                reference(&engine, &gpu_volume, &scene, options.reference_spp, &config)?;
+            let mut baseline =
+                Irradiance::new(&engine, Arc::clone(&gpu_volume), &scene, plain(&config))?;
             let (plain, plain_times) =
                 run_frames(&engine, &mut baseline, &scene, options.frames, &reference)?;
             let plain_errors = plain.reference;
@@ -734,6 +731,8 @@ pub fn tf_edit(options: &IrradianceTfEditBench) -> anyhow::Result<serde_json::Va
             Historygrams::Samples => "samples",
             Historygrams::Cells => "cells",
         },
+        "cached_light": cached_light_name(options.config.cached_light),
+        "view_picks": options.config.view_picks,
         "scenarios": rows,
     }))
 }

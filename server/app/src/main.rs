@@ -200,6 +200,15 @@ enum Command {
         /// `cells`).
         #[arg(long, default_value = "samples")]
         historygrams: String,
+        /// `convergence`, `tf-edit --technique irradiance`: what cache entries hold: `indirect`
+        /// (the default: the render pass traces the lights' direct light) or `all` (the paper).
+        #[arg(long, default_value = "indirect")]
+        cached_light: String,
+        /// `convergence`, `tf-edit --technique irradiance`: scattering events per camera sample
+        /// along the marched view ray, for plain MCVR and the cache alike (the technique's
+        /// default when absent).
+        #[arg(long)]
+        view_picks: Option<u32>,
     },
 }
 
@@ -337,8 +346,17 @@ fn run() -> anyhow::Result<()> {
             gamma,
             view_event,
             validate_hits,
+            cached_light,
+            view_picks,
         } => {
-            use voxlight_engine::techniques::irradiance::ViewEvent;
+            use voxlight_engine::techniques::irradiance::{CachedLight, ViewEvent};
+            let cached_light = match cached_light.as_str() {
+                "indirect" => CachedLight::Indirect,
+                "all" => CachedLight::All,
+                other => {
+                    anyhow::bail!("--cached-light must be `indirect` or `all`, got `{other}`")
+                }
+            };
             let view_event = match view_event.as_str() {
                 "marched" => ViewEvent::Marched,
                 "tracked" => ViewEvent::DeltaTracking,
@@ -349,6 +367,10 @@ fn run() -> anyhow::Result<()> {
             let irradiance_config = voxlight_engine::techniques::irradiance::IrradianceConfig {
                 view_event,
                 validate_hits,
+                cached_light,
+                view_picks: view_picks.unwrap_or(
+                    voxlight_engine::techniques::irradiance::IrradianceConfig::default().view_picks,
+                ),
                 gamma: gamma.unwrap_or(
                     voxlight_engine::techniques::irradiance::IrradianceConfig::default().gamma,
                 ),
