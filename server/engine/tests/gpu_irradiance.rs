@@ -1,6 +1,7 @@
 //! Technique `irradiance` on whatever adapter exists (lavapipe in CI): the cached picture is
 //! exact where the irradiance is known, converges to `pathtrace` (and, single scattering only,
-//! to `raymarch`), the 7-point estimate recovers the extinction of a homogeneous medium, TF
+//! to `raymarch`), tracing the lights' direct light keeps shadow edges that caching it blurs,
+//! the 7-point estimate recovers the extinction of a homogeneous medium, TF
 //! edits keep exactly the entries their historygrams say they cannot change, and a run with a
 //! fixed schedule repeats bit for bit.
 
@@ -613,8 +614,8 @@ fn tracing_the_direct_light_keeps_shadow_edges_where_caching_it_blurs_them() {
 #[test]
 fn plain_monte_carlo_with_the_direct_light_at_every_event_stays_unbiased_and_gets_less_noisy() {
     // Without a cache the render pass traces the lights at each of `view_picks` events and one
-    // path on from one of them. Single scattering under one hard light (where where along the
-    // ray the event lies is most of the noise): raymarch's mean, and far less variance with
+    // path on from one of them. Single scattering under one hard light (where the event's
+    // place along the ray is most of the noise): raymarch's mean, and far less variance with
     // four events than with one; multiple scattering with an environment: pathtrace's mean.
     let engine = engine();
     let plain = |volume: &Arc<GpuVolume>, s: &Scene, bounces, view_picks| {
