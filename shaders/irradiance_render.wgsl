@@ -98,6 +98,17 @@ fn view_picks_along(
     }
 }
 
+// The cache at event j, counted as one of the block's lookups; a miss keeps the octree node
+// its claim would lock.
+fn look_up(j: u32) -> Lookup {
+    let cached = cache_lookup(picked_position[j]);
+    atomicAdd(&block_rays, 1u);
+    if (cached.weight <= 0.0) {
+        miss_node_of[j] = cached.node;
+    }
+    return cached;
+}
+
 @compute @workgroup_size(16, 8)
 fn main(
     @builtin(workgroup_id) wid: vec3<u32>,
@@ -173,13 +184,10 @@ fn main(
                 miss = min(u32(rng_next(&rng) * f32(picks)), picks - 1u);
                 misses = 1u;
                 if (cache_on) {
-                    let cached = cache_lookup(picked_position[miss]);
-                    atomicAdd(&block_rays, 1u);
+                    let cached = look_up(miss);
                     if (cached.weight > 0.0) {
                         scattered += f32(picks) * picked_albedo[miss] * cached.irradiance * INV_4PI;
                         misses = 0u;
-                    } else {
-                        miss_node_of[miss] = cached.node;
                     }
                 }
             }
@@ -187,13 +195,10 @@ fn main(
             for (var j = 0u; j < picks; j++) {
                 var found = false;
                 if (cache_on) {
-                    let cached = cache_lookup(picked_position[j]);
-                    atomicAdd(&block_rays, 1u);
+                    let cached = look_up(j);
                     if (cached.weight > 0.0) {
                         scattered += picked_albedo[j] * cached.irradiance * INV_4PI;
                         found = true;
-                    } else {
-                        miss_node_of[j] = cached.node;
                     }
                 }
                 if (!found) {

@@ -41,6 +41,7 @@ use crate::passes::irradiance::{
     FLAG_VALIDATE_HITS, IrradianceBindings, IrradianceParams, PRIORITY_UNSAMPLED, Request,
     UPDATE_WORKGROUP,
 };
+use crate::scene_gpu::gpu_lights;
 use crate::technique::{StepReport, Technique, TechniqueStats};
 use crate::techniques::progressive::{Estimator, Progressive, accum_bytes};
 use crate::tf::{opacity_query_historygram, query_historygram};
@@ -785,12 +786,7 @@ impl Irradiance {
     /// event: always but with a cache that holds all the light (without a cache this is plain
     /// MCVR's best estimator).
     fn traced_direct(&self, scene: &Scene) -> bool {
-        !self.cache_active(scene) || self.cached_light(scene) == CachedLight::Indirect
-    }
-
-    /// What the entries hold for this scene (`cached_light`).
-    pub fn cached_light(&self, scene: &Scene) -> CachedLight {
-        cached_light(&self.config, scene)
+        !self.cache_active(scene) || cached_light(&self.config, scene) == CachedLight::Indirect
     }
 
     fn write_params(&self, engine: &Engine, scene: &Scene) {
@@ -1616,10 +1612,9 @@ impl Irradiance {
 /// What a cache configured so holds for this scene: the indirect light only where asked for
 /// and where there is some (more than one bounce, or an environment); else all the light.
 pub fn cached_light(config: &IrradianceConfig, scene: &Scene) -> CachedLight {
-    let has_indirect = config.bounces > 1
-        || scene.lights.iter().any(|light| {
-            matches!(light, Light::Environment { radiance } if radiance.iter().any(|&c| c > 0.0))
-        });
+    // The environment radiance the shaders see (scene.env_radiance).
+    let (_, environment) = gpu_lights(&scene.lights);
+    let has_indirect = config.bounces > 1 || environment.iter().any(|&c| c > 0.0);
     match config.cached_light {
         CachedLight::Indirect if has_indirect => CachedLight::Indirect,
         _ => CachedLight::All,
