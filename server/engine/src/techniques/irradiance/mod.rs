@@ -1159,9 +1159,10 @@ impl Irradiance {
         let passes = counts.iter().copied().max().unwrap_or(0);
         (0..passes)
             .map(|j| {
-                (0..n as u32)
-                    .filter(|&b| counts[b as usize] > j)
-                    .collect::<Vec<u32>>()
+                let mut pass: Vec<u32> =
+                    (0..n as u32).filter(|&b| counts[b as usize] > j).collect();
+                shuffle(&mut pass, || self.next_random());
+                pass
             })
             .filter(|pass| !pass.is_empty())
             .collect()
@@ -1621,6 +1622,20 @@ pub fn cached_light(config: &IrradianceConfig, scene: &Scene) -> CachedLight {
     }
 }
 
+/// A random order (Fisher–Yates, `uniform` in [0, 1)) for a render pass's blocks. Which block a
+/// workgroup renders does not change the picture, but it changes how evenly a device's cores
+/// share the work: llvmpipe gives each of its threads one contiguous run of a dispatch's
+/// workgroups, so blocks in raster order put a band of dense, slow blocks on one core while the
+/// other idles. On the 2-core VM a frame of half the chest's blocks took 85% as long as all of
+/// them (36.4 ms against 42.5), and the cache runs, whose frames render part of the image, got
+/// 25–35% fewer samples than plain MCVR at equal time.
+fn shuffle(blocks: &mut [u32], mut uniform: impl FnMut() -> f64) {
+    for i in (1..blocks.len()).rev() {
+        let j = ((uniform() * (i + 1) as f64) as usize).min(i);
+        blocks.swap(i, j);
+    }
+}
+
 /// Luminance of the irradiance a point of the volume receives at most, unshadowed: every
 /// directional light's, every point light's at the volume's centre, and 4π times the
 /// environment's radiance.
@@ -1868,6 +1883,32 @@ impl Technique for Irradiance {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn shuffled_blocks_are_a_permutation_out_of_raster_order() {
+        let mut state = 7u64;
+        let mut uniform = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let mut blocks: Vec<u32> = (0..72).collect();
+        shuffle(&mut blocks, &mut uniform);
+        let mut sorted = blocks.clone();
+        sorted.sort_unstable();
+        assert_eq!(sorted, (0..72).collect::<Vec<u32>>());
+        // A contiguous half (what llvmpipe gives one thread) mixes both halves of the image.
+        let from_top = blocks[..36].iter().filter(|&&b| b < 36).count();
+        assert!(
+            (8..=28).contains(&from_top),
+            "{from_top} of the first 36 from the top half"
+        );
+        // The largest value uniform() may return still picks an index in range.
+        let mut one = vec![5u32, 6];
+        shuffle(&mut one, || 1.0 - f64::EPSILON);
+        assert_eq!(one.len(), 2);
+    }
 
     #[test]
     fn validity_radius_follows_eq_9_and_10() {
