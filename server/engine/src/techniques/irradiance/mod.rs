@@ -1098,11 +1098,7 @@ impl Irradiance {
     }
 
     fn next_random(&mut self) -> f64 {
-        self.lcg = self
-            .lcg
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (self.lcg >> 11) as f64 / (1u64 << 53) as f64
+        lcg_uniform(&mut self.lcg)
     }
 
     /// The blocks of the next frame's render passes: `renders` block renders, in turn or by
@@ -1622,6 +1618,15 @@ pub fn cached_light(config: &IrradianceConfig, scene: &Scene) -> CachedLight {
     }
 }
 
+/// The next number in [0, 1) of a 64-bit linear congruential generator (the CPU side's draws:
+/// which blocks a frame renders and in what order).
+fn lcg_uniform(state: &mut u64) -> f64 {
+    *state = state
+        .wrapping_mul(6364136223846793005)
+        .wrapping_add(1442695040888963407);
+    (*state >> 11) as f64 / (1u64 << 53) as f64
+}
+
 /// A random order (Fisher–Yates, `uniform` in [0, 1)) for a render pass's blocks. Which block a
 /// workgroup renders does not change the picture, but it changes how evenly a device's cores
 /// share the work: llvmpipe gives each of its threads one contiguous run of a dispatch's
@@ -1887,14 +1892,8 @@ mod tests {
     #[test]
     fn shuffled_blocks_are_a_permutation_out_of_raster_order() {
         let mut state = 7u64;
-        let mut uniform = || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
         let mut blocks: Vec<u32> = (0..72).collect();
-        shuffle(&mut blocks, &mut uniform);
+        shuffle(&mut blocks, || lcg_uniform(&mut state));
         let mut sorted = blocks.clone();
         sorted.sort_unstable();
         assert_eq!(sorted, (0..72).collect::<Vec<u32>>());
