@@ -63,6 +63,15 @@ struct PhotonUniforms {
     // change grid) and the lattice samples it keeps per segment (photon_scatter.wgsl).
     scatter_capacity: u32,
     scatter_samples: u32,
+    // 1: this full pass also counts its work per record slot into `scatter`, which a full pass
+    // does not otherwise use (the work census of `bench tf-edit --census`): words
+    // [0, record_capacity) the gather terms each record gave, words
+    // [record_capacity, 2 · record_capacity) the tracking steps of the flight that ended in
+    // each slot (with a collision or not). 0 in every other pass.
+    census: u32,
+    pad0: u32,
+    pad1: u32,
+    pad2: u32,
 }
 
 // A stored photon interaction (a real collision): where, the direction it arrived from (travel

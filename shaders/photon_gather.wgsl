@@ -266,6 +266,9 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
                 let d = x - position;
                 let d2 = dot(d, d);
                 if (d2 < r2) {
+                    if (photon.census != 0u && grid == GRID_RECORDS) {
+                        atomicAdd(&scatter[item], 1u);
+                    }
                     // A replaced photon's two terms share this factor (same position and
                     // direction), so they are the very terms two separate visits would give.
                     let s = weight * phase_hg(dot(direction, out_dir), scene.g) * (1.0 - d2 / r2);

@@ -252,7 +252,9 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         var t = hit.x;
         var collided = false;
         var albedo = vec3<f32>(0.0);
+        var steps = 0u;
         loop {
+            steps += 1u;
             t += -log(1.0 - rng_next(&rng)) / photon.majorant;
             if (t >= hit.y) {
                 break;
@@ -267,6 +269,9 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
                 collisions |= hist_bit(v);
                 break;
             }
+        }
+        if (photon.census != 0u) {
+            atomicStore(&scatter[photon.record_capacity + base + k], steps);
         }
         if (!collided) {
             break;

@@ -92,6 +92,8 @@ pub struct TfEditBench<'a> {
     pub segments: u32,
     /// Timed repetitions of each edit; the medians are reported.
     pub repeats: u32,
+    /// `photon`: measure the work census (`tf_edit_census`) instead of the update's speed.
+    pub census: bool,
 }
 
 /// One TF edit of a scenario: a name and the edited TF.
@@ -297,15 +299,11 @@ pub fn tf_edit(options: &TfEditBench) -> anyhow::Result<serde_json::Value> {
             options.technique
         );
     }
+    if options.census {
+        return tf_edit_census(options);
+    }
     let engine = Engine::new()?;
-    let params = PhotonParams {
-        photons_per_pass: options.photons_per_pass,
-        max_passes: options.passes,
-        bounces: options.bounces,
-        segments: options.segments,
-        invalidation: Invalidation::DirtyCells,
-        ..PhotonParams::default()
-    };
+    let params = photon_params(options);
     // The same update with the paper's spatial historygram and with none (any changed photon
     // invalidates every segment), to measure what each saves, and with the delta scatter off
     // (every segment a change reaches gathered from the change grid).
@@ -335,17 +333,7 @@ pub fn tf_edit(options: &TfEditBench) -> anyhow::Result<serde_json::Value> {
     let mut rows = Vec::new();
     for scenario in tf_edit_scenarios(options)? {
         let gpu_volume = engine.upload_volume(&scenario.volume)?;
-        let base = Scene {
-            camera: scenario.camera,
-            tf: scenario.tf.clone(),
-            lights: crate::datasets::default_lights_for(&scenario.volume),
-            viewport: Viewport {
-                width: options.size,
-                height: options.size,
-            },
-            target_iterations: options.passes,
-            ..Scene::default()
-        };
+        let base = scenario_scene(&scenario, options);
         let mut full = Photon::new(&engine, Arc::clone(&gpu_volume), &base, params)?;
         let mut incremental = Photon::new(&engine, Arc::clone(&gpu_volume), &base, params)?;
         let mut others = variants
@@ -450,6 +438,124 @@ pub fn tf_edit(options: &TfEditBench) -> anyhow::Result<serde_json::Value> {
         "segments": options.segments,
         "repeats": options.repeats,
         "invalidation": params.invalidation.name(),
+        "scenarios": rows,
+    }))
+}
+
+/// The photon map `bench tf-edit` measures.
+fn photon_params(options: &TfEditBench) -> voxlight_engine::techniques::photon::PhotonParams {
+    use voxlight_engine::techniques::photon::{Invalidation, PhotonParams};
+    PhotonParams {
+        photons_per_pass: options.photons_per_pass,
+        max_passes: options.passes,
+        bounces: options.bounces,
+        segments: options.segments,
+        invalidation: Invalidation::DirtyCells,
+        ..PhotonParams::default()
+    }
+}
+
+/// A scenario's scene with its first TF.
+fn scenario_scene(scenario: &Scenario, options: &TfEditBench) -> Scene {
+    Scene {
+        camera: scenario.camera,
+        tf: scenario.tf.clone(),
+        lights: crate::datasets::default_lights_for(&scenario.volume),
+        viewport: Viewport {
+            width: options.size,
+            height: options.size,
+        },
+        target_iterations: options.passes,
+        ..Scene::default()
+    }
+}
+
+/// `bench tf-edit --technique photon --census`: what any bit-exact update could save. For
+/// each scenario and edit, the work census of the full recompute with the old and with the new
+/// TF (`Photon::census`), what it bounds (`WorkBound`: the least share of the new trace's
+/// tracking steps and of the new gather's terms an exact update must redo) and the highest
+/// speedup that leaves, with the trace's share of the full recompute's time measured in the
+/// same run (median of `repeats`).
+pub fn tf_edit_census(options: &TfEditBench) -> anyhow::Result<serde_json::Value> {
+    use voxlight_engine::techniques::photon::{Photon, WorkBound};
+    let engine = Engine::new()?;
+    let params = photon_params(options);
+    let ms = |d: Duration| d.as_secs_f64() * 1000.0;
+    let mut rows = Vec::new();
+    for scenario in tf_edit_scenarios(options)? {
+        let gpu_volume = engine.upload_volume(&scenario.volume)?;
+        let base = scenario_scene(&scenario, options);
+        let mut photon = Photon::new(&engine, Arc::clone(&gpu_volume), &base, params)?;
+        // Warm-up (first dispatches compile on some drivers).
+        photon.recompute(&engine, &base, options.passes)?;
+        let old = photon.census(&engine, &base, options.passes)?;
+        for edit in &scenario.edits {
+            let scene = Scene {
+                tf: edit.tf.clone(),
+                ..base.clone()
+            };
+            let query_bins =
+                voxlight_engine::tf::query_historygram(&base.tf, &scene.tf).count_ones();
+            let new = photon.census(&engine, &scene, options.passes)?;
+            let bound = WorkBound::between(&old, &new);
+            let (mut trace, mut rest) = (Vec::new(), Vec::new());
+            for _ in 0..options.repeats {
+                let (t, r) = photon.recompute_split(&engine, &scene, options.passes)?;
+                trace.push(ms(t));
+                rest.push(ms(r));
+            }
+            let (trace_ms, rest_ms) = (median(trace), median(rest));
+            let trace_share = trace_ms / (trace_ms + rest_ms).max(1e-9);
+            let speedup_bound = bound.speedup_bound(trace_share);
+            let pct = |part: u64, whole: u64| 100.0 * part as f64 / whole.max(1) as f64;
+            eprintln!(
+                "{} / {} ({query_bins} bins): records changed {:.1}% ({:.1}% power only), their \
+                 new terms {:.1}% of the gather's; paths moved {:.1}%, steps to track {:.1}% of \
+                 the trace's ({:.1}% from their flights' start); trace {trace_ms:.1} ms of \
+                 {:.1} ms: an exact update is at most {speedup_bound:.2}× faster",
+                scenario.name,
+                edit.name,
+                pct(bound.records_changed, bound.records),
+                pct(bound.records_power_only, bound.records),
+                100.0 * bound.terms_share(),
+                pct(bound.paths_moved, bound.paths),
+                100.0 * bound.steps_share(),
+                pct(bound.steps_retracked, bound.steps),
+                trace_ms + rest_ms,
+            );
+            rows.push(json!({
+                "name": scenario.name,
+                "dataset": scenario.dataset,
+                "edit": edit.name,
+                "query_bins": query_bins,
+                "records_changed_pct": pct(bound.records_changed, bound.records),
+                "records_power_only_pct": pct(bound.records_power_only, bound.records),
+                "paths_moved_pct": pct(bound.paths_moved, bound.paths),
+                "terms": bound.terms,
+                "changed_terms_pct": 100.0 * bound.terms_share(),
+                "moved_old_terms_pct": pct(bound.terms_moved_old, bound.terms),
+                "steps": bound.steps,
+                "steps_to_track_pct": 100.0 * bound.steps_share(),
+                "steps_from_flight_start_pct": pct(bound.steps_retracked, bound.steps),
+                "full_trace_ms": trace_ms,
+                "full_rest_ms": rest_ms,
+                "trace_share": trace_share,
+                "speedup_bound": speedup_bound,
+            }));
+        }
+    }
+    Ok(json!({
+        "bench": "tf-edit-census",
+        "technique": options.technique,
+        "adapter": engine.gpu.adapter_name(),
+        "software_renderer": engine.gpu.is_software(),
+        "width": options.size,
+        "height": options.size,
+        "photons": options.photons_per_pass as u64 * options.passes as u64,
+        "passes": options.passes,
+        "bounces": options.bounces,
+        "segments": options.segments,
+        "repeats": options.repeats,
         "scenarios": rows,
     }))
 }

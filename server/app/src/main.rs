@@ -138,6 +138,11 @@ enum Command {
         /// `tf-edit`: timed repetitions of each edit (the median is reported).
         #[arg(long, default_value_t = 5)]
         repeats: u32,
+        /// `tf-edit --technique photon`: instead of timing the update, count the full
+        /// recompute's work per photon record under the old and the new TF, and report the
+        /// least any bit-exact update must redo and the highest speedup that leaves.
+        #[arg(long)]
+        census: bool,
         /// Print one JSON object on the last line.
         #[arg(long)]
         json: bool,
@@ -328,6 +333,7 @@ fn run() -> anyhow::Result<()> {
             bounces,
             segments,
             repeats,
+            census,
             json,
             data,
             sizes,
@@ -398,8 +404,12 @@ fn run() -> anyhow::Result<()> {
                         bounces: bounces.unwrap_or(2).max(1),
                         segments: segments.max(1),
                         repeats: repeats.max(1),
+                        census,
                     };
                     if technique == "irradiance" {
+                        if census {
+                            anyhow::bail!("--census counts the work of `photon`'s TF updates");
+                        }
                         let historygrams = match historygrams.as_str() {
                             "samples" => Historygrams::Samples,
                             "cells" => Historygrams::Cells,

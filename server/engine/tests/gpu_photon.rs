@@ -9,7 +9,7 @@ use std::time::Duration;
 
 use common::*;
 use voxlight_engine::techniques::photon::{
-    Invalidation, Photon, PhotonBudget, PhotonParams, PhotonState,
+    Invalidation, Photon, PhotonBudget, PhotonParams, PhotonState, WorkBound,
 };
 use voxlight_engine::{Change, GpuVolume, Scene, Technique};
 use voxlight_protocol::{Camera, Light, TransferFunction};
@@ -498,6 +498,120 @@ fn bench_sized_cornell_edit_is_bit_exact() {
         "{:?}",
         first_difference(&again, &full)
     );
+}
+
+/// The work census (`bench tf-edit --census`) counts a full recompute's work per record without
+/// changing it, and tells the edits apart by what they move: a colour edit only recolours photons
+/// (delta tracking against a TF-independent majorant never reads the albedo), a removed
+/// material moves the paths that collided in it.
+#[test]
+fn the_work_census_counts_a_full_recompute_without_changing_it() {
+    let size = 40;
+    let volume = engine()
+        .upload_volume(&voxlight_volumes::phantom("cornell", 40).expect("cornell"))
+        .expect("upload");
+    let p = params(Invalidation::DirtyCells);
+    let mut s = cornell_scene(size, cornell_tf(|_, _, _| {}));
+    let mut photon = Photon::new(engine(), volume.clone(), &s, p).expect("photon");
+    let old = photon.census(engine(), &s, p.max_passes).expect("census");
+    let state = photon.read_state(engine()).expect("read");
+    if let Some(diff) = first_difference(&state, &full_recompute(&volume, &s, p)) {
+        panic!("a census is not a full recompute: {diff}");
+    }
+    assert_eq!(old.records, state.records);
+    for (i, r) in old.records.iter().enumerate() {
+        if r.cell == u32::MAX {
+            assert_eq!(old.terms[i], 0, "slot {i} holds no photon but gave terms");
+        } else {
+            assert!(
+                old.steps[i] >= 1,
+                "slot {i} holds a photon its flight never reached"
+            );
+        }
+    }
+    let total: u64 = old.terms.iter().map(|&t| t as u64).sum();
+    assert!(total > 0, "the gather formed no term");
+
+    let recoloured = cornell_tf(|n, c, _| {
+        if n == "sphere" {
+            *c = [0.9, 0.1, 0.1];
+        }
+    });
+    let colour = photon
+        .census(
+            engine(),
+            &Scene {
+                tf: recoloured.clone(),
+                ..s.clone()
+            },
+            p.max_passes,
+        )
+        .expect("census");
+    let bound = WorkBound::between(&old, &colour);
+    assert!(bound.records_changed > 0, "the sphere holds no photon");
+    assert_eq!(bound.records_power_only, bound.records_changed, "{bound:?}");
+    assert_eq!(
+        (bound.paths_moved, bound.steps_resumed),
+        (0, 0),
+        "{bound:?}"
+    );
+    assert!(
+        bound.terms_changed > 0 && bound.terms_changed < bound.terms,
+        "{bound:?}"
+    );
+    assert_eq!(
+        colour.steps, old.steps,
+        "a colour edit changed the tracking"
+    );
+
+    let removed = cornell_tf(|n, _, o| {
+        if n == "tall block" {
+            *o = 0.0;
+        }
+    });
+    let removal = photon
+        .census(
+            engine(),
+            &Scene {
+                tf: removed,
+                ..s.clone()
+            },
+            p.max_passes,
+        )
+        .expect("census");
+    let bound = WorkBound::between(&old, &removal);
+    assert!(
+        bound.paths_moved > 0 && bound.steps_resumed > 0,
+        "{bound:?}"
+    );
+    assert!(bound.steps_resumed <= bound.steps_retracked, "{bound:?}");
+    assert!(
+        bound.terms_moved_old > 0,
+        "the tall block's photons gave no terms: {bound:?}"
+    );
+    assert!(bound.speedup_bound(0.5) > 1.0, "{bound:?}");
+
+    // An update from a census's map (the census borrowed the delta scatter's buffer) still
+    // equals a full recompute.
+    s.tf = cornell_tf(|n, _, o| {
+        if n == "tall block" {
+            *o = 0.0;
+        }
+    });
+    let change = Change::tf(&s.tf, &recoloured);
+    s.tf = recoloured;
+    photon.apply(engine(), &s, &change).expect("apply");
+    let report = photon.last_update().expect("an update");
+    assert!(
+        report.segments_scattered > 0,
+        "the update did not use the scatter: {report:?}"
+    );
+    if let Some(diff) = first_difference(
+        &photon.read_state(engine()).unwrap(),
+        &full_recompute(&volume, &s, p),
+    ) {
+        panic!("an update after a census != full: {diff}");
+    }
 }
 
 /// An update that changes more records than the change list holds gathers its photon-stale

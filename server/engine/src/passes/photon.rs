@@ -45,6 +45,10 @@ pub struct PhotonUniforms {
     pub collision_query_hi: u32,
     pub scatter_capacity: u32,
     pub scatter_samples: u32,
+    pub census: u32,
+    pub pad0: u32,
+    pub pad1: u32,
+    pub pad2: u32,
 }
 
 /// Matches `PhotonRecord`: one stored photon interaction.

@@ -19,6 +19,11 @@
 //! equals a full recompute bit for bit.
 //!
 //! A camera edit keeps the photons (they do not depend on the camera) and gathers again.
+//!
+//! `census` counts a full recompute's work per record (benchmarks): compared between two TFs
+//! it bounds what any bit-exact update between them can save.
+
+pub mod census;
 
 use std::cell::Cell;
 use std::sync::Arc;
@@ -41,6 +46,7 @@ use crate::tf::{
     opacity_rise_historygram, query_historygram,
 };
 use crate::{Change, Engine, EngineError, GpuVolume, Scene};
+pub use census::{Census, WorkBound};
 
 /// Parameters of the photon map (the paper's Pn, Sn, Vn and the gather radius).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -427,6 +433,8 @@ pub struct Photon {
     segments: wgpu::Buffer,
     accum: wgpu::Buffer,
     counters: wgpu::Buffer,
+    /// The delta scatter's state; a census borrows it (a full pass does not use it).
+    scatter: wgpu::Buffer,
     bind_group: wgpu::BindGroup,
     emitter_count: u32,
     width: u32,
@@ -445,6 +453,8 @@ pub struct Photon {
     /// segment afresh did not need it).
     records_grid_behind: Cell<bool>,
     last_uniforms: Cell<PhotonUniforms>,
+    /// Whether the full pass being dispatched counts its work (`census`).
+    census: Cell<bool>,
 }
 
 impl Photon {
@@ -510,7 +520,11 @@ impl Photon {
         let gather_state = buffer("photon gather state", budget.gather_state_bytes, U::STORAGE);
         let retrace_list = buffer("photon retrace list", budget.retrace_list_bytes, U::STORAGE);
         let changes = buffer("photon changes", budget.change_bytes, U::STORAGE);
-        let scatter = buffer("photon scatter", budget.scatter_bytes, U::STORAGE);
+        let scatter = buffer(
+            "photon scatter",
+            budget.scatter_bytes,
+            U::STORAGE | U::COPY_SRC | U::COPY_DST,
+        );
         let accum = buffer("photon accum", budget.accum_bytes, U::STORAGE | U::COPY_SRC);
         let counters = buffer(
             "photon counters",
@@ -554,6 +568,7 @@ impl Photon {
             segments,
             accum,
             counters,
+            scatter,
             bind_group,
             emitter_count: 0,
             width,
@@ -566,6 +581,7 @@ impl Photon {
             scattered: 0,
             records_grid_behind: Cell::new(false),
             last_uniforms: Cell::new(bytemuck::Zeroable::zeroed()),
+            census: Cell::new(false),
         };
         technique.write_tf(engine, scene);
         technique.write_emitters(engine, scene);
@@ -686,6 +702,10 @@ impl Photon {
             collision_query_hi: (query.collision >> 32) as u32,
             scatter_capacity: self.budget.scatter_capacity as u32,
             scatter_samples: self.budget.scatter_samples as u32,
+            census: self.census.get() as u32,
+            pad0: 0,
+            pad1: 0,
+            pad2: 0,
         };
         engine
             .gpu
@@ -1080,15 +1100,101 @@ impl Photon {
         scene: &Scene,
         passes: u32,
     ) -> Result<(), EngineError> {
+        self.full_pass(engine, scene, passes, false).map(|_| ())
+    }
+
+    /// The full recompute, its trace and the rest (grids, gather, composite) timed apart with a
+    /// wait between them: how a full recompute's time divides (`bench tf-edit --census`).
+    pub fn recompute_split(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        passes: u32,
+    ) -> Result<(Duration, Duration), EngineError> {
+        self.full_pass(engine, scene, passes, true)
+    }
+
+    /// A full recompute (blocks until done); with `timed`, returns how long the trace and the
+    /// rest took (zero otherwise).
+    fn full_pass(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        passes: u32,
+        timed: bool,
+    ) -> Result<(Duration, Duration), EngineError> {
         self.passes = passes.min(self.capacity);
         self.write_tf(engine, scene);
         self.write_emitters(engine, scene);
         self.write_scene(engine, scene)?;
         let paths = self.passes * self.params.photons_per_pass;
+        if timed {
+            engine.gpu.wait_idle()?;
+        }
+        let started = Instant::now();
         self.trace(engine, scene, MODE_FULL, 0, paths, Query::default());
+        let mut trace = Duration::ZERO;
+        if timed {
+            engine.gpu.wait_idle()?;
+            trace = started.elapsed();
+        }
+        let started = Instant::now();
         self.grid_and_gather(engine, scene, MODE_FULL, Query::default())?;
         self.photons_traced += paths as u64;
-        engine.gpu.wait_idle()
+        engine.gpu.wait_idle()?;
+        let rest = if timed {
+            started.elapsed()
+        } else {
+            Duration::ZERO
+        };
+        Ok((trace, rest))
+    }
+
+    /// A full recompute with `scene` that also counts its work per record slot: the gather
+    /// terms each record gave and the tracking steps of the flight that ended in each slot
+    /// (benchmarks: `WorkBound::between` two censuses bounds what an exact update between
+    /// their TFs can save). The state afterwards is that of `recompute`. It borrows the delta
+    /// scatter's buffer (two words per record slot), which a full pass does not use, and
+    /// leaves it cleared.
+    pub fn census(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        passes: u32,
+    ) -> Result<Census, EngineError> {
+        let slots = self.budget.records;
+        let bytes = 8 * slots;
+        if self.budget.scatter_bytes < bytes {
+            return Err(EngineError::InvalidScene(format!(
+                "photon census: needs {bytes} bytes of the delta scatter's buffer, which has {} \
+                 (PhotonParams::scatter_bytes)",
+                self.budget.scatter_bytes
+            )));
+        }
+        let clear = |engine: &Engine, scatter: &wgpu::Buffer| {
+            let mut encoder = Self::encoder(engine, "photon census clear");
+            encoder.clear_buffer(scatter, 0, Some(bytes));
+            engine.gpu.queue.submit([encoder.finish()]);
+        };
+        clear(engine, &self.scatter);
+        self.census.set(true);
+        let done = self.full_pass(engine, scene, passes, false);
+        self.census.set(false);
+        done?;
+        let words: Vec<u32> =
+            bytemuck::pod_collect_to_vec(&engine.gpu.read_buffer_range(&self.scatter, 0, bytes)?);
+        // Between updates the scatter's per-segment words read SEGMENT_UNTOUCHED (0); a
+        // leftover count of 1 would pass for a mark (more work for the next update, same bits).
+        clear(engine, &self.scatter);
+        let state = self.read_state(engine)?;
+        let n = state.records.len();
+        let slots = slots as usize;
+        Ok(Census {
+            terms: words[..n].to_vec(),
+            steps: words[slots..slots + n].to_vec(),
+            records: state.records,
+            bounces: self.params.bounces,
+        })
     }
 
     /// The incremental update after a TF edit from `old_tf` (`scene` holds the new TF).
