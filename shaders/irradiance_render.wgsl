@@ -218,10 +218,14 @@ fn main(
                 if (!traced_direct()) {
                     traced = albedo * direct_light(p, dir, &rng);
                 }
-                let u1 = rng_next(&rng);
-                let u2 = rng_next(&rng);
-                let next = sample_hg(dir, scene.g, u1, u2);
-                traced += trace_radiance(p, next, albedo, 1u, params.bounces, &rng);
+                // With single scattering and no environment the scattered path's one flight
+                // can only find darkness (trace_radiance returns exactly 0): skip it.
+                if (params.bounces > 1u || any(scene.env_radiance > vec3<f32>(0.0))) {
+                    let u1 = rng_next(&rng);
+                    let u2 = rng_next(&rng);
+                    let next = sample_hg(dir, scene.g, u1, u2);
+                    traced += trace_radiance(p, next, albedo, 1u, params.bounces, &rng);
+                }
             }
             // A traced event stands for `misses` events (FLAG_TRACED_DIRECT: for all of them).
             scattered += f32(select(misses, picks, traced_direct())) * traced;

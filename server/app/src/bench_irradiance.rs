@@ -14,6 +14,7 @@ use anyhow::Context;
 use serde_json::json;
 use voxlight_engine::techniques::irradiance::{
     CachedLight, Historygrams, Invalidation, Irradiance, IrradianceConfig, Locking, ViewEvent,
+    cached_light,
 };
 use voxlight_engine::{Change, Engine, GpuVolume, Scene, Technique};
 use voxlight_protocol::{Camera, Light, TransferFunction, Viewport};
@@ -35,6 +36,8 @@ pub struct ConvergenceBench<'a> {
     pub dump: Option<&'a Path>,
     /// The cache's configuration besides what each case sets.
     pub config: IrradianceConfig,
+    /// Measure the ceiling of any cache of the indirect light (`ceiling`) instead.
+    pub ceiling: bool,
 }
 
 /// Writes linear radiance as an sRGB PNG (exposure 1, clamped).
@@ -379,6 +382,9 @@ fn base_scene(
 /// run's median frame time), for each dataset, light setup, with and without priorities,
 /// object- and screen-space locking; the ratio of their errors averaged over the frames.
 pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Value> {
+    if options.ceiling {
+        return ceiling(options);
+    }
     let data_dir = options
         .data_dir
         .context("bench convergence needs ../shared/data (or --data)")?;
@@ -594,6 +600,160 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
     }))
 }
 
+/// Frames after which `ceiling`'s ramp-up supposes the cache complete.
+const CEILING_RAMPS: [u32; 6] = [0, 1, 5, 10, 20, 50];
+
+/// The error ratio, averaged over `frames` frames as `convergence` averages it, of a cache that
+/// answers nothing for its first `complete_after` frames and then every event, at equal time
+/// per frame: plain MCVR renders `a` = t_plain / t_cached times fewer samples per frame once it
+/// is complete, each of `1 / b` = V_plain / V_cached times the variance. The running mean weighs
+/// every sample alike, so after n frames, f = min(n, F) of them without the cache and g = n − f
+/// with it, the squared ratio is (f + g·a)² / (n · (f + g·a·b)).
+pub fn ramp_ratio(a: f64, b: f64, complete_after: u32, frames: u32) -> f64 {
+    let sum: f64 = (1..=frames.max(1))
+        .map(|n| {
+            let f = n.min(complete_after) as f64;
+            let g = n as f64 - f;
+            ((f + g * a).powi(2) / (n as f64 * (f + g * a * b))).sqrt()
+        })
+        .sum();
+    sum / frames.max(1) as f64
+}
+
+/// The mean over the pixels of each sample's luminance variance (from each pixel's variance of
+/// its mean and its sample count).
+fn sample_variance(technique: &Irradiance, engine: &Engine) -> anyhow::Result<f64> {
+    let (_, variance) = technique.read_estimate(engine)?;
+    let n = technique.iteration() as f64;
+    Ok(variance.iter().map(|&v| v as f64 * n).sum::<f64>() / variance.len().max(1) as f64)
+}
+
+/// `bench convergence --ceiling`: the most any cache of the indirect light (the default
+/// `cached_light`) could gain. For each dataset and light setup, plain MCVR runs as in
+/// `convergence` and, interleaved frame by frame, without its indirect light (one bounce and
+/// no environment: the scattered path is not traced): what a free, perfect cache would leave
+/// (its exact answer adds a variance of its own, unless that happens to cancel the direct
+/// light's). The ceiling is √(V_plain·t_plain / (V_direct·t_direct)), the error ratio at equal
+/// time of a cache complete from the first frame; `ramp` gives the same averaged over the
+/// frames as `convergence` does for a cache complete only after F frames (`ramp_ratio`).
+pub fn ceiling(options: &ConvergenceBench) -> anyhow::Result<serde_json::Value> {
+    let data_dir = options
+        .data_dir
+        .context("bench convergence needs ../shared/data (or --data)")?;
+    let engine = Engine::new()?;
+    let config = IrradianceConfig {
+        bounces: options.bounces,
+        ..options.config
+    };
+    let mut cases = Vec::new();
+    for name in options.datasets {
+        let volume = dataset(data_dir, name, options.max_dim)?;
+        let gpu_volume = engine.upload_volume(&volume)?;
+        for &lights in options.lights {
+            let scene = base_scene(
+                name,
+                &volume,
+                options.size,
+                light_setup(lights, dataset_up(name))?,
+            );
+            let environment = scene
+                .lights
+                .iter()
+                .any(|l| matches!(l, Light::Environment { .. }));
+            if cached_light(&config, &scene) != CachedLight::Indirect || environment {
+                anyhow::bail!(
+                    "--ceiling bounds a cache of the indirect light: it needs multiple scattering, \
+                     `--cached-light indirect` and no environment light"
+                );
+            }
+            warm_up(&engine, &gpu_volume, &scene)?;
+            let mut plain_run =
+                Irradiance::new(&engine, Arc::clone(&gpu_volume), &scene, plain(&config))?;
+            let direct_config = IrradianceConfig {
+                bounces: 1,
+                ..plain(&config)
+            };
+            let mut direct_run =
+                Irradiance::new(&engine, Arc::clone(&gpu_volume), &scene, direct_config)?;
+            let (mut plain_times, mut direct_times) = (Vec::new(), Vec::new());
+            for _ in 0..options.frames {
+                for (run, times) in [
+                    (&mut plain_run, &mut plain_times),
+                    (&mut direct_run, &mut direct_times),
+                ] {
+                    let started = Instant::now();
+                    run.frame(&engine, &scene, true)?;
+                    times.push(started.elapsed());
+                }
+            }
+            let (t_plain, t_direct) = (
+                median(plain_times).as_secs_f64() * 1e3,
+                median(direct_times).as_secs_f64() * 1e3,
+            );
+            let (v_plain, v_direct) = (
+                sample_variance(&plain_run, &engine)?,
+                sample_variance(&direct_run, &engine)?,
+            );
+            let (a, b) = (t_plain / t_direct.max(1e-9), v_direct / v_plain.max(1e-30));
+            let ceiling = (a / b.max(1e-30)).sqrt();
+            let ramp: Vec<serde_json::Value> = CEILING_RAMPS
+                .iter()
+                .map(|&f| {
+                    json!({"complete_after_frames": f, "mean_error_ratio": ramp_ratio(a, b, f, options.frames)})
+                })
+                .collect();
+            eprintln!(
+                "{name}, {lights} light(s): plain {t_plain:.1} ms/frame, without the indirect light \
+                 {t_direct:.1} ms; the indirect light is {:.0}% of the variance; ceiling {ceiling:.2} \
+                 (complete after 10 frames: {:.2})",
+                100.0 * (1.0 - b),
+                ramp_ratio(a, b, 10, options.frames),
+            );
+            cases.push(json!({
+                "dataset": name,
+                "lights": lights,
+                "frame_ms_plain": t_plain,
+                "frame_ms_direct": t_direct,
+                "sample_variance_plain": v_plain,
+                "sample_variance_direct": v_direct,
+                "indirect_variance_share": 1.0 - b,
+                "ceiling": ceiling,
+                "ramp": ramp,
+            }));
+        }
+    }
+    let mean = |key: &dyn Fn(&serde_json::Value) -> Option<f64>| {
+        let values: Vec<f64> = cases.iter().filter_map(key).collect();
+        values.iter().sum::<f64>() / values.len().max(1) as f64
+    };
+    let mean_ceiling = mean(&|c| c["ceiling"].as_f64());
+    let mean_ramp: Vec<serde_json::Value> = CEILING_RAMPS
+        .iter()
+        .enumerate()
+        .map(|(i, &f)| {
+            json!({
+                "complete_after_frames": f,
+                "mean_error_ratio": mean(&|c| c["ramp"][i]["mean_error_ratio"].as_f64()),
+            })
+        })
+        .collect();
+    Ok(json!({
+        "bench": "convergence-ceiling",
+        "adapter": engine.gpu.adapter_name(),
+        "software_renderer": engine.gpu.is_software(),
+        "width": options.size,
+        "height": options.size,
+        "max_dim": options.max_dim,
+        "frames": options.frames,
+        "bounces": options.bounces,
+        "view_event": view_event_name(options.config.view_event),
+        "view_picks": options.config.view_picks,
+        "cases": cases,
+        "mean_ceiling": mean_ceiling,
+        "mean_ramp": mean_ramp,
+    }))
+}
+
 /// Options of `bench tf-edit --technique irradiance`.
 pub struct IrradianceTfEditBench<'a> {
     pub scenarios: crate::bench::TfEditBench<'a>,
@@ -735,4 +895,26 @@ pub fn tf_edit(options: &IrradianceTfEditBench) -> anyhow::Result<serde_json::Va
         "view_picks": options.config.view_picks,
         "scenarios": rows,
     }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::ramp_ratio;
+
+    #[test]
+    fn a_cache_complete_from_the_start_gives_the_ceiling_and_one_never_complete_gives_one() {
+        // Twice plain's samples per frame at half the variance each: four times the efficiency.
+        let (a, b) = (2.0, 0.5);
+        assert!((ramp_ratio(a, b, 0, 200) - 2.0).abs() < 1e-12);
+        assert!((ramp_ratio(a, b, 200, 200) - 1.0).abs() < 1e-12);
+        assert!((ramp_ratio(a, b, 500, 200) - 1.0).abs() < 1e-12);
+        // Completed later, less of the average is won, and never less than without the cache.
+        let ratios: Vec<f64> = [0, 1, 5, 10, 20, 50].map(|f| ramp_ratio(a, b, f, 200)).to_vec();
+        assert!(ratios.windows(2).all(|w| w[0] > w[1] && w[1] > 1.0), "{ratios:?}");
+        // Complete after one frame, over three: after frame n the cache run has 1 + 2(n − 1)
+        // samples, with variance 1 + 2(n − 1)·0.5 in plain's units, against n plain samples, so
+        // the ratios are 1, √(9 / 4) and √(25 / 9).
+        let expected = (1.0 + 1.5 + (25.0_f64 / 9.0).sqrt()) / 3.0;
+        assert!((ramp_ratio(a, b, 1, 3) - expected).abs() < 1e-12);
+    }
 }
