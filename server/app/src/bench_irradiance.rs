@@ -909,8 +909,13 @@ mod tests {
         assert!((ramp_ratio(a, b, 200, 200) - 1.0).abs() < 1e-12);
         assert!((ramp_ratio(a, b, 500, 200) - 1.0).abs() < 1e-12);
         // Completed later, less of the average is won, and never less than without the cache.
-        let ratios: Vec<f64> = [0, 1, 5, 10, 20, 50].map(|f| ramp_ratio(a, b, f, 200)).to_vec();
-        assert!(ratios.windows(2).all(|w| w[0] > w[1] && w[1] > 1.0), "{ratios:?}");
+        let ratios: Vec<f64> = [0, 1, 5, 10, 20, 50]
+            .map(|f| ramp_ratio(a, b, f, 200))
+            .to_vec();
+        assert!(
+            ratios.windows(2).all(|w| w[0] > w[1] && w[1] > 1.0),
+            "{ratios:?}"
+        );
         // Complete after one frame, over three: after frame n the cache run has 1 + 2(n − 1)
         // samples, with variance 1 + 2(n − 1)·0.5 in plain's units, against n plain samples, so
         // the ratios are 1, √(9 / 4) and √(25 / 9).

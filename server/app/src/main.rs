@@ -143,6 +143,10 @@ enum Command {
         /// least any bit-exact update must redo and the highest speedup that leaves.
         #[arg(long)]
         census: bool,
+        /// `convergence`: instead of running the cache, measure the most any cache of the
+        /// indirect light could gain (plain MCVR with and without its indirect light).
+        #[arg(long)]
+        ceiling: bool,
         /// Print one JSON object on the last line.
         #[arg(long)]
         json: bool,
@@ -334,6 +338,7 @@ fn run() -> anyhow::Result<()> {
             segments,
             repeats,
             census,
+            ceiling,
             json,
             data,
             sizes,
@@ -444,6 +449,7 @@ fn run() -> anyhow::Result<()> {
                         bounces: bounces.unwrap_or(DEFAULT_BOUNCES).max(1),
                         dump: dump.as_deref(),
                         config: irradiance_config,
+                        ceiling,
                     })?
                 }
                 "manylight" => bench_manylight::manylight(&bench_manylight::ManylightBench {
