@@ -620,6 +620,11 @@ pub fn ramp_ratio(a: f64, b: f64, complete_after: u32, frames: u32) -> f64 {
     sum / frames.max(1) as f64
 }
 
+/// The paper's error (Eq. 5's left side) summed over the pixels: 1.96 √(variance of the mean).
+fn half_width(variance: &[f32]) -> f64 {
+    variance.iter().map(|&v| 1.96 * (v as f64).sqrt()).sum()
+}
+
 /// The mean over the pixels of each sample's luminance variance (from each pixel's variance of
 /// its mean and its sample count).
 fn sample_variance(technique: &Irradiance, engine: &Engine) -> anyhow::Result<f64> {
@@ -636,6 +641,9 @@ fn sample_variance(technique: &Irradiance, engine: &Engine) -> anyhow::Result<f6
 /// light's). The ceiling is √(V_plain·t_plain / (V_direct·t_direct)), the error ratio at equal
 /// time of a cache complete from the first frame; `ramp` gives the same averaged over the
 /// frames as `convergence` does for a cache complete only after F frames (`ramp_ratio`).
+/// Each also runs with Eq. 12's priorities at its own frame time: their gain by the paper's
+/// error measure (the larger of the two) scales the ramp for the benchmark's priority variants,
+/// which `convergence` averages with the in-turn ones (`with_priority_variants`).
 pub fn ceiling(options: &ConvergenceBench) -> anyhow::Result<serde_json::Value> {
     let data_dir = options
         .data_dir
@@ -675,17 +683,60 @@ pub fn ceiling(options: &ConvergenceBench) -> anyhow::Result<serde_json::Value> 
             };
             let mut direct_run =
                 Irradiance::new(&engine, Arc::clone(&gpu_volume), &scene, direct_config)?;
+            // Each with Eq. 12's priorities at the time its frame just took: what the
+            // benchmark's priority variants add (the control's gain, and the same for a renderer
+            // whose indirect light a perfect cache answers).
+            let prioritised = |config: IrradianceConfig| IrradianceConfig {
+                priorities: true,
+                frame_time: Some(Duration::from_millis(1)),
+                ..config
+            };
+            let mut plain_priorities = Irradiance::new(
+                &engine,
+                Arc::clone(&gpu_volume),
+                &scene,
+                prioritised(plain(&config)),
+            )?;
+            let mut direct_priorities = Irradiance::new(
+                &engine,
+                Arc::clone(&gpu_volume),
+                &scene,
+                prioritised(direct_config),
+            )?;
             let (mut plain_times, mut direct_times) = (Vec::new(), Vec::new());
+            let (mut plain_gain, mut direct_gain) = (Vec::new(), Vec::new());
             for _ in 0..options.frames {
-                for (run, times) in [
-                    (&mut plain_run, &mut plain_times),
-                    (&mut direct_run, &mut direct_times),
+                for (run, with_priorities, times, gain) in [
+                    (
+                        &mut plain_run,
+                        &mut plain_priorities,
+                        &mut plain_times,
+                        &mut plain_gain,
+                    ),
+                    (
+                        &mut direct_run,
+                        &mut direct_priorities,
+                        &mut direct_times,
+                        &mut direct_gain,
+                    ),
                 ] {
                     let started = Instant::now();
                     run.frame(&engine, &scene, true)?;
-                    times.push(started.elapsed());
+                    let elapsed = started.elapsed();
+                    times.push(elapsed);
+                    with_priorities.set_frame_time(Some(elapsed));
+                    with_priorities.frame(&engine, &scene, true)?;
+                    gain.push(
+                        half_width(&run.read_estimate(&engine)?.1)
+                            / half_width(&with_priorities.read_estimate(&engine)?.1).max(1e-30),
+                    );
                 }
             }
+            let average = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+            // The paper's error measure of the priorities' gain (no reference needed); the
+            // larger of the two stands for what they add on top of any cache.
+            let (plain_gain, direct_gain) = (average(&plain_gain), average(&direct_gain));
+            let priority_gain = plain_gain.max(direct_gain);
             let (t_plain, t_direct) = (
                 median(plain_times).as_secs_f64() * 1e3,
                 median(direct_times).as_secs_f64() * 1e3,
@@ -696,16 +747,24 @@ pub fn ceiling(options: &ConvergenceBench) -> anyhow::Result<serde_json::Value> 
             );
             let (a, b) = (t_plain / t_direct.max(1e-9), v_direct / v_plain.max(1e-30));
             let ceiling = (a / b.max(1e-30)).sqrt();
+            // The benchmark averages its in-turn and its priority variants alike.
+            let with_variants = (1.0 + priority_gain) / 2.0;
             let ramp: Vec<serde_json::Value> = CEILING_RAMPS
                 .iter()
                 .map(|&f| {
-                    json!({"complete_after_frames": f, "mean_error_ratio": ramp_ratio(a, b, f, options.frames)})
+                    let r = ramp_ratio(a, b, f, options.frames);
+                    json!({
+                        "complete_after_frames": f,
+                        "mean_error_ratio": r,
+                        "with_priority_variants": r * with_variants,
+                    })
                 })
                 .collect();
             eprintln!(
                 "{name}, {lights} light(s): plain {t_plain:.1} ms/frame, without the indirect light \
                  {t_direct:.1} ms; the indirect light is {:.0}% of the variance; ceiling {ceiling:.2} \
-                 (complete after 10 frames: {:.2})",
+                 (complete after 10 frames: {:.2}); priorities gain {plain_gain:.2} (plain), \
+                 {direct_gain:.2} (without the indirect light)",
                 100.0 * (1.0 - b),
                 ramp_ratio(a, b, 10, options.frames),
             );
@@ -718,6 +777,8 @@ pub fn ceiling(options: &ConvergenceBench) -> anyhow::Result<serde_json::Value> 
                 "sample_variance_direct": v_direct,
                 "indirect_variance_share": 1.0 - b,
                 "ceiling": ceiling,
+                "priority_gain_plain": plain_gain,
+                "priority_gain_direct": direct_gain,
                 "ramp": ramp,
             }));
         }
@@ -734,6 +795,7 @@ pub fn ceiling(options: &ConvergenceBench) -> anyhow::Result<serde_json::Value> 
             json!({
                 "complete_after_frames": f,
                 "mean_error_ratio": mean(&|c| c["ramp"][i]["mean_error_ratio"].as_f64()),
+                "with_priority_variants": mean(&|c| c["ramp"][i]["with_priority_variants"].as_f64()),
             })
         })
         .collect();
