@@ -161,9 +161,10 @@ const EMIT_ENVIRONMENT: u32 = 2u;
 const CELL_NONE: u32 = 0xffffffffu;
 const HIST_BINS: u32 = 64u;
 
-// Counters written by the passes: retraced paths, changed photon records, recomputed segments,
-// the spatial historygram (x lo/hi, y lo/hi, z lo/hi), the segments listed in each half of
-// gather_list, change-list entries, segments updated from the changes alone.
+// Counters written by the passes: listed paths (retraced or recoloured), changed photon
+// records, recomputed segments, the spatial historygram (x lo/hi, y lo/hi, z lo/hi), the
+// segments listed in each half of gather_list, change-list entries, segments updated from the
+// changes alone.
 const COUNTER_RETRACED: u32 = 0u;
 const COUNTER_CHANGED: u32 = 1u;
 const COUNTER_SEGMENTS: u32 = 2u;
@@ -184,8 +185,10 @@ const COUNTER_SCATTER_OVERFLOW: u32 = 14u;
 // reach by its marks instead of the dirty cells (unless the change list or the scatter
 // overflowed).
 const COUNTER_TOUCH: u32 = 15u;
+// Listed paths an update only recoloured (photon_trace.wgsl): no flight of theirs was tracked.
+const COUNTER_RECOLOURED: u32 = 16u;
 // Dirty-cell bits follow the counters.
-const COUNTER_DIRTY: u32 = 16u;
+const COUNTER_DIRTY: u32 = 17u;
 const GRID_RECORDS: u32 = 0u;
 const GRID_CHANGES: u32 = 1u;
 const CHANGE_ADD: u32 = 0u;

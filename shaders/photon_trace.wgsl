@@ -194,20 +194,56 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     if (photon.mode == MODE_UPDATE) {
         let path = paths[p];
         old_count = path.count;
-        // Start after the last interaction the edit did not affect: the first affected one is
-        // the first whose flight met the rejection query or whose collision meets the
-        // collision query.
+        // Start after the last interaction the edit did not move: the first moved one is the
+        // first whose flight met the rejection query or whose collision's opacity fell. A
+        // collision whose colour alone changed stays where it is (the tracking never reads
+        // the albedo): it and every record after it only take a new power, formed here as the
+        // trace forms it (power × albedo), with no flight tracked. Should that decide whether
+        // the path goes on (a power that is now, or was, all zero), the trace resumes there.
+        var recolour = false;
+        var ends_differently = false;
+        var power_before = vec3<f32>(0.0);
         var j = 0;
-        while (j < i32(path.count)) {
+        loop {
+            if (j >= i32(path.count)) {
+                break;
+            }
             let r = records[base + u32(j)];
             let bit = collision_bit(r);
-            if (hist_hits_rejection_query(r.hist_lo, r.hist_hi) || hist_hits_collision_query(bit.x, bit.y)) {
+            let opacity_fell_here = hist_hits_collision_query(bit.x, bit.y) && hist_hits_opacity_query(bit.x, bit.y);
+            if (hist_hits_rejection_query(r.hist_lo, r.hist_hi) || opacity_fell_here) {
                 break;
             }
             collisions |= bit;
+            recolour = recolour || hist_hits_collision_query(bit.x, bit.y);
+            if (!recolour) {
+                power_before = r.power;
+                j += 1;
+                continue;
+            }
+            if (j == 0) {
+                var rng = rng_new(scene.seed, p, 0u);
+                power_before = emit(&rng).power;
+            }
+            let power = power_before * classify(data_at(r.position)).rgb;
+            store_record(base + u32(j), PhotonRecord(r.position, r.cell, power, r.hist_lo, r.direction, r.hist_hi));
+            power_before = power;
             j += 1;
+            // The trace goes on after a record only while its power is not all zero.
+            if (all(power <= vec3<f32>(0.0)) != all(r.power <= vec3<f32>(0.0))) {
+                ends_differently = true;
+                break;
+            }
         }
         start = j - 1;
+        // Every record stayed in place and the flight that left the volume after the last one
+        // cannot collide now: nothing to track.
+        let escape_may_collide = path.count < bounces
+            && hist_hits_rejection_query(path.end_lo, path.end_hi);
+        if (recolour && j == i32(path.count) && !ends_differently && !escape_may_collide) {
+            atomicAdd(&counters[COUNTER_RECOLOURED], 1u);
+            return;
+        }
     }
 
     var position = vec3<f32>(0.0);

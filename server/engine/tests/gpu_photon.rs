@@ -148,6 +148,39 @@ fn incremental_tf_edits_equal_a_full_recompute_bit_for_bit() {
             true,
         ),
         (
+            // Paths recoloured at the sphere and retraced from the tall block on.
+            "mixed: sphere green, tall block half as opaque",
+            cornell_tf(|n, c, o| {
+                if n == "sphere" {
+                    *c = [0.1, 0.9, 0.1];
+                }
+                if n == "tall block" {
+                    *o *= 0.5;
+                }
+            }),
+            true,
+        ),
+        (
+            // A black albedo ends the paths there (they trace on no further)...
+            "to black: sphere black",
+            cornell_tf(|n, c, _| {
+                if n == "sphere" {
+                    *c = [0.0; 3];
+                }
+            }),
+            true,
+        ),
+        (
+            // ...and a colour again lets them go on: traced from the sphere on.
+            "from black: sphere red again",
+            cornell_tf(|n, c, _| {
+                if n == "sphere" {
+                    *c = [0.9, 0.1, 0.1];
+                }
+            }),
+            true,
+        ),
+        (
             "opacity only: tall block removed",
             cornell_tf(|n, c, o| {
                 if n == "sphere" {
@@ -266,7 +299,7 @@ fn incremental_tf_edits_equal_a_full_recompute_bit_for_bit() {
                 panic!("{spatial}, edit `{name}`: incremental != full: {diff}");
             }
             eprintln!(
-                "{spatial}, {name}: query {:064b}, retraced {:.1}% of {} paths, {} records changed \
+                "{spatial}, {name}: query {:064b}, retraced {:.1}% of {} paths ({} recoloured), {} records changed \
                  ({} change-list entries; {meeting_query} paths meet the query), segments {:.1}% ({} from \
                  the changes alone, {} by the scatter)",
                 match &change {
@@ -277,13 +310,20 @@ fn incremental_tf_edits_equal_a_full_recompute_bit_for_bit() {
                 },
                 report.photons_retraced_pct(),
                 report.paths,
+                report.paths_recoloured,
                 report.records_changed,
                 report.changes,
                 report.segments_recomputed_pct(),
                 report.segments_delta,
                 report.segments_scattered,
             );
-            assert!(report.paths_retraced > 0, "{name}: nothing retraced");
+            if name.starts_with("colour only") {
+                // A colour edit moves no photon: the paths it reaches are only recoloured.
+                assert_eq!(report.paths_retraced, 0, "{name}");
+                assert!(report.paths_recoloured > 0, "{name}: nothing recoloured");
+            } else {
+                assert!(report.paths_retraced > 0, "{name}: nothing retraced");
+            }
             if name.contains("thin medium") {
                 // No opacity rose, so a path that only passed through the edited bins without
                 // a collision there is not retraced.

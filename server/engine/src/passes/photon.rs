@@ -138,8 +138,8 @@ pub const EMIT_ENVIRONMENT: u32 = 2;
 /// `counters` words: retraced paths, changed records, recomputed segments, spatial 3×2,
 /// listed segments (2), change-list entries, segments updated from the changes alone, delta
 /// scatter slots taken, delta scatter overflows, whether the scatter's marks stand for the
-/// dirty cells; the dirty-cell bits follow.
-pub const COUNTER_WORDS: usize = 16;
+/// dirty cells, listed paths only recoloured; the dirty-cell bits follow.
+pub const COUNTER_WORDS: usize = 17;
 pub const COUNTER_RETRACED: usize = 0;
 pub const COUNTER_CHANGED: usize = 1;
 pub const COUNTER_SEGMENTS: usize = 2;
@@ -151,6 +151,7 @@ pub const COUNTER_DELTA: usize = 12;
 pub const COUNTER_SCATTER: usize = 13;
 pub const COUNTER_SCATTER_OVERFLOW: usize = 14;
 pub const COUNTER_TOUCH: usize = 15;
+pub const COUNTER_RECOLOURED: usize = 16;
 /// Words per delta-scatter slot (photon_scatter.wgsl).
 pub const SLOT_WORDS: usize = 8;
 /// `grid_pass` uniform: which grid the grid kernels build.

@@ -32,11 +32,11 @@ use std::time::{Duration, Instant};
 use voxlight_protocol::{Light, TransferFunction};
 
 use crate::passes::photon::{
-    COUNTER_CHANGED, COUNTER_CHANGES, COUNTER_DELTA, COUNTER_LIST, COUNTER_RETRACED,
-    COUNTER_SCATTER, COUNTER_SCATTER_OVERFLOW, COUNTER_SEGMENTS, COUNTER_SPATIAL, COUNTER_TOUCH,
-    COUNTER_WORDS, EMIT_DIRECTIONAL, EMIT_ENVIRONMENT, EMIT_POINT, GRID_CHANGES, GRID_RECORDS,
-    GatherState, MODE_FULL, MODE_UPDATE, PhotonBindings, PhotonChange, PhotonEmitter, PhotonPass,
-    PhotonPath, PhotonRecord, PhotonUniforms, SLOT_WORDS, SPATIAL_AXES, SPATIAL_CELLS,
+    COUNTER_CHANGED, COUNTER_CHANGES, COUNTER_DELTA, COUNTER_LIST, COUNTER_RECOLOURED,
+    COUNTER_RETRACED, COUNTER_SCATTER, COUNTER_SCATTER_OVERFLOW, COUNTER_SEGMENTS, COUNTER_SPATIAL,
+    COUNTER_TOUCH, COUNTER_WORDS, EMIT_DIRECTIONAL, EMIT_ENVIRONMENT, EMIT_POINT, GRID_CHANGES,
+    GRID_RECORDS, GatherState, MODE_FULL, MODE_UPDATE, PhotonBindings, PhotonChange, PhotonEmitter,
+    PhotonPass, PhotonPath, PhotonRecord, PhotonUniforms, SLOT_WORDS, SPATIAL_AXES, SPATIAL_CELLS,
     SPATIAL_NONE, Segment, dispatch_linear, dispatch_single,
 };
 use crate::scene_gpu::{SceneUniforms, default_step};
@@ -167,7 +167,11 @@ struct Query {
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct UpdateReport {
     pub paths: u64,
+    /// Paths tracked again from a moved interaction on.
     pub paths_retraced: u64,
+    /// Paths whose records only took new powers (a changed colour where they collided): no
+    /// flight of theirs was tracked.
+    pub paths_recoloured: u64,
     /// Records that differ from before (all of them when the edit touched every bin and the
     /// map was recomputed without comparing).
     pub records_changed: u64,
@@ -1271,7 +1275,10 @@ impl Photon {
         };
         let report = UpdateReport {
             paths: paths as u64,
-            paths_retraced: words[COUNTER_RETRACED] as u64,
+            // trace_mark lists both kinds; the trace counts the recoloured ones.
+            paths_retraced: words[COUNTER_RETRACED].saturating_sub(words[COUNTER_RECOLOURED])
+                as u64,
+            paths_recoloured: words[COUNTER_RECOLOURED] as u64,
             records_changed: words[COUNTER_CHANGED] as u64,
             segments,
             segments_recomputed: words[COUNTER_SEGMENTS] as u64,
