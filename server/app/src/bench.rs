@@ -425,8 +425,20 @@ pub fn tf_edit(options: &TfEditBench) -> anyhow::Result<serde_json::Value> {
             }));
         }
     }
-    Ok(json!({
-        "bench": "tf-edit",
+    let mut result = photon_bench_json("tf-edit", options, &engine, rows);
+    result["invalidation"] = json!(params.invalidation.name());
+    Ok(result)
+}
+
+/// What `bench tf-edit --technique photon` reports besides its rows.
+fn photon_bench_json(
+    bench: &str,
+    options: &TfEditBench,
+    engine: &Engine,
+    rows: Vec<serde_json::Value>,
+) -> serde_json::Value {
+    json!({
+        "bench": bench,
         "technique": options.technique,
         "adapter": engine.gpu.adapter_name(),
         "software_renderer": engine.gpu.is_software(),
@@ -437,9 +449,8 @@ pub fn tf_edit(options: &TfEditBench) -> anyhow::Result<serde_json::Value> {
         "bounces": options.bounces,
         "segments": options.segments,
         "repeats": options.repeats,
-        "invalidation": params.invalidation.name(),
         "scenarios": rows,
-    }))
+    })
 }
 
 /// The photon map `bench tf-edit` measures.
@@ -544,20 +555,7 @@ pub fn tf_edit_census(options: &TfEditBench) -> anyhow::Result<serde_json::Value
             }));
         }
     }
-    Ok(json!({
-        "bench": "tf-edit-census",
-        "technique": options.technique,
-        "adapter": engine.gpu.adapter_name(),
-        "software_renderer": engine.gpu.is_software(),
-        "width": options.size,
-        "height": options.size,
-        "photons": options.photons_per_pass as u64 * options.passes as u64,
-        "passes": options.passes,
-        "bounces": options.bounces,
-        "segments": options.segments,
-        "repeats": options.repeats,
-        "scenarios": rows,
-    }))
+    Ok(photon_bench_json("tf-edit-census", options, &engine, rows))
 }
 
 /// The median of some timings (the mean of the middle two for an even count).

@@ -378,6 +378,28 @@ fn base_scene(
     }
 }
 
+/// Runs `case` for each dataset and light setup of `options`, with the dataset on the GPU and
+/// the case's scene.
+fn for_each_case(
+    options: &ConvergenceBench,
+    engine: &Engine,
+    mut case: impl FnMut(&str, u32, &Arc<GpuVolume>, &Scene) -> anyhow::Result<()>,
+) -> anyhow::Result<()> {
+    let data_dir = options
+        .data_dir
+        .context("bench convergence needs ../shared/data (or --data)")?;
+    for name in options.datasets {
+        let volume = dataset(data_dir, name, options.max_dim)?;
+        let gpu_volume = engine.upload_volume(&volume)?;
+        for &lights in options.lights {
+            let lights_in_scene = light_setup(lights, dataset_up(name))?;
+            let scene = base_scene(name, &volume, options.size, lights_in_scene);
+            case(name, lights, &gpu_volume, &scene)?;
+        }
+    }
+    Ok(())
+}
+
 /// `bench convergence`: plain MCVR against `irradiance` at equal time per frame (the plain
 /// run's median frame time), for each dataset, light setup, with and without priorities,
 /// object- and screen-space locking; the ratio of their errors averaged over the frames.
@@ -385,9 +407,6 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
     if options.ceiling {
         return ceiling(options);
     }
-    let data_dir = options
-        .data_dir
-        .context("bench convergence needs ../shared/data (or --data)")?;
     let engine = Engine::new()?;
     let config = IrradianceConfig {
         bounces: options.bounces,
@@ -395,178 +414,167 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
     };
     let mut cases = Vec::new();
     let mut controls = Vec::new();
-    for name in options.datasets {
-        let volume = dataset(data_dir, name, options.max_dim)?;
-        let gpu_volume = engine.upload_volume(&volume)?;
-        for &lights in options.lights {
-            let scene = base_scene(
-                name,
-                &volume,
-                options.size,
-                light_setup(lights, dataset_up(name))?,
-            );
-            warm_up(&engine, &gpu_volume, &scene)?;
-            let started = Instant::now();
-            let reference =
-                reference(&engine, &gpu_volume, &scene, options.reference_spp, &config)?;
-            eprintln!(
-                "{name}, {lights} light(s): reference {} spp in {:.1} s (its own relative noise {:.4})",
-                options.reference_spp,
-                started.elapsed().as_secs_f64(),
-                reference.relative_noise()
-            );
-            // Plain MCVR and every variant run interleaved, frame by frame, each variant's
-            // frame given the time the plain frame just before it took: the machine's speed
-            // drifts (a shared VM), and this keeps "equal time per frame" true under drift.
-            let variants: Vec<(bool, Locking)> = [false, true]
-                .into_iter()
-                .flat_map(|p| [(p, Locking::Object), (p, Locking::Screen)])
-                .collect();
-            let mut baseline =
-                Irradiance::new(&engine, Arc::clone(&gpu_volume), &scene, plain(&config))?;
-            let mut techniques = variants
-                .iter()
-                .map(|&(priorities, locking)| {
-                    let config = IrradianceConfig {
-                        locking,
-                        priorities,
-                        frame_time: Some(Duration::from_millis(1)),
-                        ..config
-                    };
-                    Irradiance::new(&engine, Arc::clone(&gpu_volume), &scene, config)
-                })
-                .collect::<Result<Vec<_>, _>>()?;
-            // A control: plain MCVR with the same priorities and no cache. Eq. 12 draws blocks by
-            // their samples' variance alone, so this separates what the priorities gain from
-            // what the cache gains.
-            let mut control = Irradiance::new(
-                &engine,
-                Arc::clone(&gpu_volume),
-                &scene,
-                IrradianceConfig {
-                    priorities: true,
+    for_each_case(options, &engine, |name, lights, gpu_volume, scene| {
+        warm_up(&engine, gpu_volume, scene)?;
+        let started = Instant::now();
+        let reference = reference(&engine, gpu_volume, scene, options.reference_spp, &config)?;
+        eprintln!(
+            "{name}, {lights} light(s): reference {} spp in {:.1} s (its own relative noise {:.4})",
+            options.reference_spp,
+            started.elapsed().as_secs_f64(),
+            reference.relative_noise()
+        );
+        // Plain MCVR and every variant run interleaved, frame by frame, each variant's
+        // frame given the time the plain frame just before it took: the machine's speed
+        // drifts (a shared VM), and this keeps "equal time per frame" true under drift.
+        let variants: Vec<(bool, Locking)> = [false, true]
+            .into_iter()
+            .flat_map(|p| [(p, Locking::Object), (p, Locking::Screen)])
+            .collect();
+        let mut baseline = Irradiance::new(&engine, Arc::clone(gpu_volume), scene, plain(&config))?;
+        let mut techniques = variants
+            .iter()
+            .map(|&(priorities, locking)| {
+                let config = IrradianceConfig {
+                    locking,
+                    priorities,
                     frame_time: Some(Duration::from_millis(1)),
-                    ..plain(&config)
-                },
-            )?;
-            let mut control_run = Errors::default();
-            let mut plain_run = Errors::default();
-            let mut plain_times = Vec::new();
-            let mut runs: Vec<Errors> = variants.iter().map(|_| Errors::default()).collect();
-            let mut times: Vec<Vec<Duration>> = variants.iter().map(|_| Vec::new()).collect();
-            let mut splits = vec![[Duration::ZERO; 4]; variants.len()];
-            for _ in 0..options.frames {
-                let t = timed_frame(&engine, &mut baseline, &scene, &reference, &mut plain_run)?;
-                plain_times.push(t.0);
-                control.set_frame_time(Some(t.0));
-                timed_frame(&engine, &mut control, &scene, &reference, &mut control_run)?;
-                for (i, technique) in techniques.iter_mut().enumerate() {
-                    technique.set_frame_time(Some(t.0));
-                    let (elapsed, split) =
-                        timed_frame(&engine, technique, &scene, &reference, &mut runs[i])?;
-                    times[i].push(elapsed);
-                    for (sum, d) in splits[i].iter_mut().zip(split) {
-                        *sum += d;
-                    }
-                }
-            }
-            let plain_errors = &plain_run.reference;
-            let frame_time = median(plain_times.clone());
-            let control_ratio = mean_ratio(plain_errors, &control_run.reference);
-            eprintln!(
-                "{name}, {lights} light(s), plain MCVR with priorities (no cache): error ratio {control_ratio:.2} (the paper's estimate: {:.2}); {} vs {} image-equivalents",
-                mean_ratio(&plain_run.estimated, &control_run.estimated),
-                control.iteration(),
-                baseline.iteration(),
-            );
-            controls.push(json!({
-                "dataset": name,
-                "lights": lights,
-                "error_ratio": control_ratio,
-                "estimated_error_ratio": mean_ratio(&plain_run.estimated, &control_run.estimated),
-                "samples_per_pixel": control.iteration(),
-            }));
-            let dump = |what: &str, picture: &[[f32; 3]]| -> anyhow::Result<()> {
-                match options.dump {
-                    Some(dir) => {
-                        std::fs::create_dir_all(dir)?;
-                        save_png(
-                            &dir.join(format!("{name}-{lights}-{what}.png")),
-                            picture,
-                            options.size,
-                        )
-                    }
-                    None => Ok(()),
-                }
-            };
-            dump("reference", &reference.mean)?;
-            dump("plain", &baseline.read_estimate(&engine)?.0)?;
+                    ..config
+                };
+                Irradiance::new(&engine, Arc::clone(gpu_volume), scene, config)
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        // A control: plain MCVR with the same priorities and no cache. Eq. 12 draws blocks by
+        // their samples' variance alone, so this separates what the priorities gain from
+        // what the cache gains.
+        let mut control = Irradiance::new(
+            &engine,
+            Arc::clone(gpu_volume),
+            scene,
+            IrradianceConfig {
+                priorities: true,
+                frame_time: Some(Duration::from_millis(1)),
+                ..plain(&config)
+            },
+        )?;
+        let mut control_run = Errors::default();
+        let mut plain_run = Errors::default();
+        let mut plain_times = Vec::new();
+        let mut runs: Vec<Errors> = variants.iter().map(|_| Errors::default()).collect();
+        let mut times: Vec<Vec<Duration>> = variants.iter().map(|_| Vec::new()).collect();
+        let mut splits = vec![[Duration::ZERO; 4]; variants.len()];
+        for _ in 0..options.frames {
+            let t = timed_frame(&engine, &mut baseline, scene, &reference, &mut plain_run)?;
+            plain_times.push(t.0);
+            control.set_frame_time(Some(t.0));
+            timed_frame(&engine, &mut control, scene, &reference, &mut control_run)?;
             for (i, technique) in techniques.iter_mut().enumerate() {
-                let (priorities, locking) = variants[i];
-                {
-                    let errors = &runs[i].reference;
-                    let ratio = mean_ratio(plain_errors, errors);
-                    let estimated_ratio = mean_ratio(&plain_run.estimated, &runs[i].estimated);
-                    let frame_ms = median(times[i].clone()).as_secs_f64() * 1e3;
-                    let split = splits[i].map(|d| d.as_secs_f64() * 1e3 / options.frames as f64);
-                    let shape = entry_shape(&engine, technique, options.max_dim)?;
-                    let locking_name = match locking {
-                        Locking::Object => "object",
-                        Locking::Screen => "screen",
-                    };
-                    dump(
-                        &format!(
-                            "irradiance-{}-{locking_name}",
-                            if priorities { "priorities" } else { "in-turn" },
-                        ),
-                        &technique.read_estimate(&engine)?.0,
-                    )?;
-                    let stats = technique.cache_stats();
-                    let last = options.frames as usize - 1;
-                    eprintln!(
-                        "{name}, {lights} light(s), priorities {priorities}, {locking_name} locking: \
-                         error ratio {ratio:.2} (the paper's estimate: {estimated_ratio:.2}; last frame: plain {:.4}, irradiance {:.4}); \
-                         {} entries ({shape}), {} references, hit rate {:.2}; frame {:.1} ms vs plain {:.1} ms \
-                         (render {:.1}, create {:.1}, update {:.1}, rest {:.1}); {} vs {} image-equivalents",
-                        plain_errors[last],
-                        errors[last],
-                        stats.entries,
-                        stats.references,
-                        stats.hit_rate,
-                        frame_ms,
-                        frame_time.as_secs_f64() * 1e3,
-                        split[0],
-                        split[1],
-                        split[2],
-                        split[3],
-                        technique.iteration(),
-                        baseline.iteration(),
-                    );
-                    cases.push(json!({
-                        "dataset": name,
-                        "lights": lights,
-                        "priorities": priorities,
-                        "locking": locking_name,
-                        "error_ratio": ratio,
-                        "estimated_error_ratio": estimated_ratio,
-                        "cache_entries": stats.entries,
-                        "references": stats.references,
-                        "hit_rate": stats.hit_rate,
-                        "final_error_plain": plain_errors[last],
-                        "final_error_irradiance": errors[last],
-                        "frame_ms_plain": frame_time.as_secs_f64() * 1e3,
-                        "frame_ms_irradiance": frame_ms,
-                        "reference_noise": reference.relative_noise(),
-                        "samples_per_pixel": technique.iteration(),
-                        "samples_per_pixel_plain": baseline.iteration(),
-                        "ms_per_frame_split": {
-                            "render": split[0], "create": split[1], "update": split[2], "rest": split[3],
-                        },
-                    }));
+                technique.set_frame_time(Some(t.0));
+                let (elapsed, split) =
+                    timed_frame(&engine, technique, scene, &reference, &mut runs[i])?;
+                times[i].push(elapsed);
+                for (sum, d) in splits[i].iter_mut().zip(split) {
+                    *sum += d;
                 }
             }
         }
-    }
+        let plain_errors = &plain_run.reference;
+        let frame_time = median(plain_times.clone());
+        let control_ratio = mean_ratio(plain_errors, &control_run.reference);
+        eprintln!(
+            "{name}, {lights} light(s), plain MCVR with priorities (no cache): error ratio {control_ratio:.2} (the paper's estimate: {:.2}); {} vs {} image-equivalents",
+            mean_ratio(&plain_run.estimated, &control_run.estimated),
+            control.iteration(),
+            baseline.iteration(),
+        );
+        controls.push(json!({
+            "dataset": name,
+            "lights": lights,
+            "error_ratio": control_ratio,
+            "estimated_error_ratio": mean_ratio(&plain_run.estimated, &control_run.estimated),
+            "samples_per_pixel": control.iteration(),
+        }));
+        let dump = |what: &str, picture: &[[f32; 3]]| -> anyhow::Result<()> {
+            match options.dump {
+                Some(dir) => {
+                    std::fs::create_dir_all(dir)?;
+                    save_png(
+                        &dir.join(format!("{name}-{lights}-{what}.png")),
+                        picture,
+                        options.size,
+                    )
+                }
+                None => Ok(()),
+            }
+        };
+        dump("reference", &reference.mean)?;
+        dump("plain", &baseline.read_estimate(&engine)?.0)?;
+        for (i, technique) in techniques.iter_mut().enumerate() {
+            let (priorities, locking) = variants[i];
+            {
+                let errors = &runs[i].reference;
+                let ratio = mean_ratio(plain_errors, errors);
+                let estimated_ratio = mean_ratio(&plain_run.estimated, &runs[i].estimated);
+                let frame_ms = median(times[i].clone()).as_secs_f64() * 1e3;
+                let split = splits[i].map(|d| d.as_secs_f64() * 1e3 / options.frames as f64);
+                let shape = entry_shape(&engine, technique, options.max_dim)?;
+                let locking_name = match locking {
+                    Locking::Object => "object",
+                    Locking::Screen => "screen",
+                };
+                dump(
+                    &format!(
+                        "irradiance-{}-{locking_name}",
+                        if priorities { "priorities" } else { "in-turn" },
+                    ),
+                    &technique.read_estimate(&engine)?.0,
+                )?;
+                let stats = technique.cache_stats();
+                let last = options.frames as usize - 1;
+                eprintln!(
+                    "{name}, {lights} light(s), priorities {priorities}, {locking_name} locking: \
+                     error ratio {ratio:.2} (the paper's estimate: {estimated_ratio:.2}; last frame: plain {:.4}, irradiance {:.4}); \
+                     {} entries ({shape}), {} references, hit rate {:.2}; frame {:.1} ms vs plain {:.1} ms \
+                     (render {:.1}, create {:.1}, update {:.1}, rest {:.1}); {} vs {} image-equivalents",
+                    plain_errors[last],
+                    errors[last],
+                    stats.entries,
+                    stats.references,
+                    stats.hit_rate,
+                    frame_ms,
+                    frame_time.as_secs_f64() * 1e3,
+                    split[0],
+                    split[1],
+                    split[2],
+                    split[3],
+                    technique.iteration(),
+                    baseline.iteration(),
+                );
+                cases.push(json!({
+                    "dataset": name,
+                    "lights": lights,
+                    "priorities": priorities,
+                    "locking": locking_name,
+                    "error_ratio": ratio,
+                    "estimated_error_ratio": estimated_ratio,
+                    "cache_entries": stats.entries,
+                    "references": stats.references,
+                    "hit_rate": stats.hit_rate,
+                    "final_error_plain": plain_errors[last],
+                    "final_error_irradiance": errors[last],
+                    "frame_ms_plain": frame_time.as_secs_f64() * 1e3,
+                    "frame_ms_irradiance": frame_ms,
+                    "reference_noise": reference.relative_noise(),
+                    "samples_per_pixel": technique.iteration(),
+                    "samples_per_pixel_plain": baseline.iteration(),
+                    "ms_per_frame_split": {
+                        "render": split[0], "create": split[1], "update": split[2], "rest": split[3],
+                    },
+                }));
+            }
+        }
+        Ok(())
+    })?;
     let ratios: Vec<f64> = cases
         .iter()
         .filter_map(|c| c["error_ratio"].as_f64())
@@ -645,144 +653,137 @@ fn sample_variance(technique: &Irradiance, engine: &Engine) -> anyhow::Result<f6
 /// error measure (the larger of the two) scales the ramp for the benchmark's priority variants,
 /// which `convergence` averages with the in-turn ones (`with_priority_variants`).
 pub fn ceiling(options: &ConvergenceBench) -> anyhow::Result<serde_json::Value> {
-    let data_dir = options
-        .data_dir
-        .context("bench convergence needs ../shared/data (or --data)")?;
     let engine = Engine::new()?;
     let config = IrradianceConfig {
         bounces: options.bounces,
         ..options.config
     };
     let mut cases = Vec::new();
-    for name in options.datasets {
-        let volume = dataset(data_dir, name, options.max_dim)?;
-        let gpu_volume = engine.upload_volume(&volume)?;
-        for &lights in options.lights {
-            let scene = base_scene(
-                name,
-                &volume,
-                options.size,
-                light_setup(lights, dataset_up(name))?,
+    for_each_case(options, &engine, |name, lights, gpu_volume, scene| {
+        let environment = scene
+            .lights
+            .iter()
+            .any(|l| matches!(l, Light::Environment { .. }));
+        if cached_light(&config, scene) != CachedLight::Indirect || environment {
+            anyhow::bail!(
+                "--ceiling bounds a cache of the indirect light: it needs multiple scattering, \
+                 `--cached-light indirect` and no environment light"
             );
-            let environment = scene
-                .lights
-                .iter()
-                .any(|l| matches!(l, Light::Environment { .. }));
-            if cached_light(&config, &scene) != CachedLight::Indirect || environment {
-                anyhow::bail!(
-                    "--ceiling bounds a cache of the indirect light: it needs multiple scattering, \
-                     `--cached-light indirect` and no environment light"
+        }
+        warm_up(&engine, gpu_volume, scene)?;
+        let mut plain_run =
+            Irradiance::new(&engine, Arc::clone(gpu_volume), scene, plain(&config))?;
+        let direct_config = IrradianceConfig {
+            bounces: 1,
+            ..plain(&config)
+        };
+        let mut direct_run =
+            Irradiance::new(&engine, Arc::clone(gpu_volume), scene, direct_config)?;
+        // Each with Eq. 12's priorities at the time its frame just took: what the
+        // benchmark's priority variants add (the control's gain, and the same for a renderer
+        // whose indirect light a perfect cache answers).
+        let prioritised = |config: IrradianceConfig| IrradianceConfig {
+            priorities: true,
+            frame_time: Some(Duration::from_millis(1)),
+            ..config
+        };
+        let mut plain_priorities = Irradiance::new(
+            &engine,
+            Arc::clone(gpu_volume),
+            scene,
+            prioritised(plain(&config)),
+        )?;
+        let mut direct_priorities = Irradiance::new(
+            &engine,
+            Arc::clone(gpu_volume),
+            scene,
+            prioritised(direct_config),
+        )?;
+        let (mut plain_times, mut direct_times) = (Vec::new(), Vec::new());
+        let (mut plain_gain, mut direct_gain) = (Vec::new(), Vec::new());
+        for _ in 0..options.frames {
+            for (run, with_priorities, times, gain) in [
+                (
+                    &mut plain_run,
+                    &mut plain_priorities,
+                    &mut plain_times,
+                    &mut plain_gain,
+                ),
+                (
+                    &mut direct_run,
+                    &mut direct_priorities,
+                    &mut direct_times,
+                    &mut direct_gain,
+                ),
+            ] {
+                let started = Instant::now();
+                run.frame(&engine, scene, true)?;
+                let elapsed = started.elapsed();
+                times.push(elapsed);
+                with_priorities.set_frame_time(Some(elapsed));
+                with_priorities.frame(&engine, scene, true)?;
+                // Until every pixel has two samples the paper's measure reads 0 there: such
+                // frames say nothing of the gain.
+                let (without, with) = (
+                    half_width(&run.read_estimate(&engine)?.1),
+                    half_width(&with_priorities.read_estimate(&engine)?.1),
                 );
-            }
-            warm_up(&engine, &gpu_volume, &scene)?;
-            let mut plain_run =
-                Irradiance::new(&engine, Arc::clone(&gpu_volume), &scene, plain(&config))?;
-            let direct_config = IrradianceConfig {
-                bounces: 1,
-                ..plain(&config)
-            };
-            let mut direct_run =
-                Irradiance::new(&engine, Arc::clone(&gpu_volume), &scene, direct_config)?;
-            // Each with Eq. 12's priorities at the time its frame just took: what the
-            // benchmark's priority variants add (the control's gain, and the same for a renderer
-            // whose indirect light a perfect cache answers).
-            let prioritised = |config: IrradianceConfig| IrradianceConfig {
-                priorities: true,
-                frame_time: Some(Duration::from_millis(1)),
-                ..config
-            };
-            let mut plain_priorities = Irradiance::new(
-                &engine,
-                Arc::clone(&gpu_volume),
-                &scene,
-                prioritised(plain(&config)),
-            )?;
-            let mut direct_priorities = Irradiance::new(
-                &engine,
-                Arc::clone(&gpu_volume),
-                &scene,
-                prioritised(direct_config),
-            )?;
-            let (mut plain_times, mut direct_times) = (Vec::new(), Vec::new());
-            let (mut plain_gain, mut direct_gain) = (Vec::new(), Vec::new());
-            for _ in 0..options.frames {
-                for (run, with_priorities, times, gain) in [
-                    (
-                        &mut plain_run,
-                        &mut plain_priorities,
-                        &mut plain_times,
-                        &mut plain_gain,
-                    ),
-                    (
-                        &mut direct_run,
-                        &mut direct_priorities,
-                        &mut direct_times,
-                        &mut direct_gain,
-                    ),
-                ] {
-                    let started = Instant::now();
-                    run.frame(&engine, &scene, true)?;
-                    let elapsed = started.elapsed();
-                    times.push(elapsed);
-                    with_priorities.set_frame_time(Some(elapsed));
-                    with_priorities.frame(&engine, &scene, true)?;
-                    gain.push(
-                        half_width(&run.read_estimate(&engine)?.1)
-                            / half_width(&with_priorities.read_estimate(&engine)?.1).max(1e-30),
-                    );
+                if without > 0.0 && with > 0.0 {
+                    gain.push(without / with);
                 }
             }
-            let average = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
-            // The paper's error measure of the priorities' gain (no reference needed); the
-            // larger of the two stands for what they add on top of any cache.
-            let (plain_gain, direct_gain) = (average(&plain_gain), average(&direct_gain));
-            let priority_gain = plain_gain.max(direct_gain);
-            let (t_plain, t_direct) = (
-                median(plain_times).as_secs_f64() * 1e3,
-                median(direct_times).as_secs_f64() * 1e3,
-            );
-            let (v_plain, v_direct) = (
-                sample_variance(&plain_run, &engine)?,
-                sample_variance(&direct_run, &engine)?,
-            );
-            let (a, b) = (t_plain / t_direct.max(1e-9), v_direct / v_plain.max(1e-30));
-            let ceiling = (a / b.max(1e-30)).sqrt();
-            // The benchmark averages its in-turn and its priority variants alike.
-            let with_variants = (1.0 + priority_gain) / 2.0;
-            let ramp: Vec<serde_json::Value> = CEILING_RAMPS
-                .iter()
-                .map(|&f| {
-                    let r = ramp_ratio(a, b, f, options.frames);
-                    json!({
-                        "complete_after_frames": f,
-                        "mean_error_ratio": r,
-                        "with_priority_variants": r * with_variants,
-                    })
-                })
-                .collect();
-            eprintln!(
-                "{name}, {lights} light(s): plain {t_plain:.1} ms/frame, without the indirect light \
-                 {t_direct:.1} ms; the indirect light is {:.0}% of the variance; ceiling {ceiling:.2} \
-                 (complete after 10 frames: {:.2}); priorities gain {plain_gain:.2} (plain), \
-                 {direct_gain:.2} (without the indirect light)",
-                100.0 * (1.0 - b),
-                ramp_ratio(a, b, 10, options.frames),
-            );
-            cases.push(json!({
-                "dataset": name,
-                "lights": lights,
-                "frame_ms_plain": t_plain,
-                "frame_ms_direct": t_direct,
-                "sample_variance_plain": v_plain,
-                "sample_variance_direct": v_direct,
-                "indirect_variance_share": 1.0 - b,
-                "ceiling": ceiling,
-                "priority_gain_plain": plain_gain,
-                "priority_gain_direct": direct_gain,
-                "ramp": ramp,
-            }));
         }
-    }
+        let average = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+        // The paper's error measure of the priorities' gain (no reference needed); the
+        // larger of the two stands for what they add on top of any cache.
+        let (plain_gain, direct_gain) = (average(&plain_gain), average(&direct_gain));
+        let priority_gain = plain_gain.max(direct_gain);
+        let (t_plain, t_direct) = (
+            median(plain_times).as_secs_f64() * 1e3,
+            median(direct_times).as_secs_f64() * 1e3,
+        );
+        let (v_plain, v_direct) = (
+            sample_variance(&plain_run, &engine)?,
+            sample_variance(&direct_run, &engine)?,
+        );
+        let (a, b) = (t_plain / t_direct.max(1e-9), v_direct / v_plain.max(1e-30));
+        let ceiling = (a / b.max(1e-30)).sqrt();
+        // The benchmark averages its in-turn and its priority variants alike.
+        let with_variants = (1.0 + priority_gain) / 2.0;
+        let ramp: Vec<serde_json::Value> = CEILING_RAMPS
+            .iter()
+            .map(|&f| {
+                let r = ramp_ratio(a, b, f, options.frames);
+                json!({
+                    "complete_after_frames": f,
+                    "mean_error_ratio": r,
+                    "with_priority_variants": r * with_variants,
+                })
+            })
+            .collect();
+        eprintln!(
+            "{name}, {lights} light(s): plain {t_plain:.1} ms/frame, without the indirect light \
+             {t_direct:.1} ms; the indirect light is {:.0}% of the variance; ceiling {ceiling:.2} \
+             (complete after 10 frames: {:.2}); priorities gain {plain_gain:.2} (plain), \
+             {direct_gain:.2} (without the indirect light)",
+            100.0 * (1.0 - b),
+            ramp_ratio(a, b, 10, options.frames),
+        );
+        cases.push(json!({
+            "dataset": name,
+            "lights": lights,
+            "frame_ms_plain": t_plain,
+            "frame_ms_direct": t_direct,
+            "sample_variance_plain": v_plain,
+            "sample_variance_direct": v_direct,
+            "indirect_variance_share": 1.0 - b,
+            "ceiling": ceiling,
+            "priority_gain_plain": plain_gain,
+            "priority_gain_direct": direct_gain,
+            "ramp": ramp,
+        }));
+        Ok(())
+    })?;
     let mean = |key: &dyn Fn(&serde_json::Value) -> Option<f64>| {
         let values: Vec<f64> = cases.iter().filter_map(key).collect();
         values.iter().sum::<f64>() / values.len().max(1) as f64
