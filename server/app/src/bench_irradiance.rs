@@ -575,37 +575,55 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
         }
         Ok(())
     })?;
-    let ratios: Vec<f64> = cases
-        .iter()
-        .filter_map(|c| c["error_ratio"].as_f64())
-        .collect();
-    let mean = ratios.iter().sum::<f64>() / ratios.len().max(1) as f64;
-    let estimated: Vec<f64> = cases
-        .iter()
-        .filter_map(|c| c["estimated_error_ratio"].as_f64())
-        .collect();
-    let mean_estimated = estimated.iter().sum::<f64>() / estimated.len().max(1) as f64;
-    Ok(json!({
-        "bench": "convergence",
+    let mut result = convergence_json("convergence", options, &engine);
+    for (key, value) in [
+        ("reference_spp", json!(options.reference_spp)),
+        ("max_radius_voxels", json!(options.config.max_radius_voxels)),
+        ("gamma", json!(options.config.gamma)),
+        ("validate_hits", json!(options.config.validate_hits)),
+        (
+            "cached_light",
+            json!(cached_light_name(options.config.cached_light)),
+        ),
+        (
+            "mean_error_ratio",
+            json!(mean_over(&cases, |c| c["error_ratio"].as_f64())),
+        ),
+        (
+            "mean_estimated_error_ratio",
+            json!(mean_over(&cases, |c| c["estimated_error_ratio"].as_f64())),
+        ),
+        ("cases", json!(cases)),
+        ("priorities_without_cache", json!(controls)),
+    ] {
+        result[key] = value;
+    }
+    Ok(result)
+}
+
+/// What `bench convergence` and its `--ceiling` report besides their cases.
+fn convergence_json(bench: &str, options: &ConvergenceBench, engine: &Engine) -> serde_json::Value {
+    json!({
+        "bench": bench,
         "adapter": engine.gpu.adapter_name(),
         "software_renderer": engine.gpu.is_software(),
         "width": options.size,
         "height": options.size,
         "max_dim": options.max_dim,
         "frames": options.frames,
-        "reference_spp": options.reference_spp,
         "bounces": options.bounces,
-        "max_radius_voxels": options.config.max_radius_voxels,
-        "gamma": options.config.gamma,
-        "validate_hits": options.config.validate_hits,
         "view_event": view_event_name(options.config.view_event),
-        "cached_light": cached_light_name(options.config.cached_light),
         "view_picks": options.config.view_picks,
-        "cases": cases,
-        "mean_error_ratio": mean,
-        "priorities_without_cache": controls,
-        "mean_estimated_error_ratio": mean_estimated,
-    }))
+    })
+}
+
+/// The mean of `value` over the cases that have it.
+fn mean_over(
+    cases: &[serde_json::Value],
+    value: impl Fn(&serde_json::Value) -> Option<f64>,
+) -> f64 {
+    let values: Vec<f64> = cases.iter().filter_map(value).collect();
+    values.iter().sum::<f64>() / values.len().max(1) as f64
 }
 
 /// Frames after which `ceiling`'s ramp-up supposes the cache complete.
@@ -784,37 +802,24 @@ pub fn ceiling(options: &ConvergenceBench) -> anyhow::Result<serde_json::Value> 
         }));
         Ok(())
     })?;
-    let mean = |key: &dyn Fn(&serde_json::Value) -> Option<f64>| {
-        let values: Vec<f64> = cases.iter().filter_map(key).collect();
-        values.iter().sum::<f64>() / values.len().max(1) as f64
-    };
-    let mean_ceiling = mean(&|c| c["ceiling"].as_f64());
+    let mean_ceiling = mean_over(&cases, |c| c["ceiling"].as_f64());
     let mean_ramp: Vec<serde_json::Value> = CEILING_RAMPS
         .iter()
         .enumerate()
         .map(|(i, &f)| {
             json!({
                 "complete_after_frames": f,
-                "mean_error_ratio": mean(&|c| c["ramp"][i]["mean_error_ratio"].as_f64()),
-                "with_priority_variants": mean(&|c| c["ramp"][i]["with_priority_variants"].as_f64()),
+                "mean_error_ratio": mean_over(&cases, |c| c["ramp"][i]["mean_error_ratio"].as_f64()),
+                "with_priority_variants":
+                    mean_over(&cases, |c| c["ramp"][i]["with_priority_variants"].as_f64()),
             })
         })
         .collect();
-    Ok(json!({
-        "bench": "convergence-ceiling",
-        "adapter": engine.gpu.adapter_name(),
-        "software_renderer": engine.gpu.is_software(),
-        "width": options.size,
-        "height": options.size,
-        "max_dim": options.max_dim,
-        "frames": options.frames,
-        "bounces": options.bounces,
-        "view_event": view_event_name(options.config.view_event),
-        "view_picks": options.config.view_picks,
-        "cases": cases,
-        "mean_ceiling": mean_ceiling,
-        "mean_ramp": mean_ramp,
-    }))
+    let mut result = convergence_json("convergence-ceiling", options, &engine);
+    result["mean_ceiling"] = json!(mean_ceiling);
+    result["mean_ramp"] = json!(mean_ramp);
+    result["cases"] = json!(cases);
+    Ok(result)
 }
 
 /// Options of `bench tf-edit --technique irradiance`.
