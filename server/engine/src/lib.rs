@@ -7,6 +7,7 @@ pub mod gpu;
 pub mod gpu_timer;
 pub mod macrocell;
 pub mod passes;
+pub mod preview;
 pub mod renderer;
 pub mod scene;
 pub mod scene_gpu;
@@ -68,6 +69,7 @@ pub struct Engine {
     pub tonemap: passes::tonemap::TonemapPass,
     pub manylight: passes::manylight::ManylightPasses,
     pub irradiance: passes::irradiance::IrradiancePasses,
+    pub preview: passes::preview::PreviewPasses,
     /// Most GPU bytes one session may allocate (besides the shared volume texture).
     pub session_budget: u64,
 }
@@ -85,6 +87,7 @@ impl Engine {
         let tonemap = passes::tonemap::TonemapPass::new(&gpu);
         let manylight = passes::manylight::ManylightPasses::new(&gpu);
         let irradiance = passes::irradiance::IrradiancePasses::new(&gpu);
+        let preview = passes::preview::PreviewPasses::new(&gpu);
         gpu.check()?;
         let session_budget = gpu.limits.max_buffer_size.min(2 << 30);
         Ok(Self {
@@ -95,6 +98,7 @@ impl Engine {
             tonemap,
             manylight,
             irradiance,
+            preview,
             session_budget,
         })
     }

@@ -4,7 +4,10 @@
 use std::sync::Arc;
 use std::time::Duration;
 
+use voxlight_protocol::TransferFunction;
+
 use crate::passes::tonemap::ToneParams;
+use crate::preview::{Preview, PreviewReport};
 use crate::technique::{StepReport, Technique, TechniqueStats};
 use crate::techniques::photon::Photon;
 use crate::techniques::progressive::{Estimator, Progressive, accum_bytes};
@@ -20,6 +23,10 @@ pub struct Frame {
     pub iteration: u32,
     pub target_iterations: u32,
     pub converged: bool,
+    /// Resolution divisor per axis: 1 for the full viewport, 2, 4 or 8 for a reduced preview.
+    pub divisor: u32,
+    /// An interactive preview (passes::preview), not the technique's estimate.
+    pub preview: bool,
 }
 
 pub struct Renderer {
@@ -30,12 +37,81 @@ pub struct Renderer {
     tone_bind_group: wgpu::BindGroup,
     width: u32,
     height: u32,
+    /// Made at the first preview (a session that never moves never pays for it).
+    preview: Option<Preview>,
+    /// Edits the preview already shows and the technique has not seen yet.
+    pending: Pending,
+}
+
+/// Edits queued for the technique while they are shown by the preview (`Renderer::defer`),
+/// merged: a drag of many camera or TF edits reaches the technique as one of each.
+#[derive(Debug, Default)]
+struct Pending {
+    /// The TF before the first queued TF edit.
+    tf_old: Option<TransferFunction>,
+    camera: bool,
+    lights: bool,
+    params: bool,
+    iterations: bool,
+}
+
+impl Pending {
+    fn push(&mut self, change: &Change) {
+        match change {
+            Change::Tf { old, .. } => {
+                if self.tf_old.is_none() {
+                    self.tf_old = Some(old.clone());
+                }
+            }
+            Change::Camera => self.camera = true,
+            Change::Lights => self.lights = true,
+            Change::Params => self.params = true,
+            Change::Iterations => self.iterations = true,
+            // Applied at once (Renderer::defer), never queued.
+            Change::Viewport => {}
+        }
+    }
+
+    /// The merged edits for `scene` (the state after all of them), in an order after which
+    /// every technique holds what it would after seeing each edit: restarts (params, lights)
+    /// first, then the TF update against the TF before the first edit (view-independent
+    /// state such as photons, cache entries and virtual lights), then the camera (the
+    /// view-dependent state, redone for the final view), then more iterations.
+    fn take(&mut self, scene: &Scene) -> Vec<Change> {
+        let mut changes = Vec::new();
+        if std::mem::take(&mut self.params) {
+            changes.push(Change::Params);
+        }
+        if std::mem::take(&mut self.lights) {
+            changes.push(Change::Lights);
+        }
+        if let Some(old) = self.tf_old.take()
+            && old != scene.tf
+        {
+            changes.push(Change::tf(&old, &scene.tf));
+        }
+        if std::mem::take(&mut self.camera) {
+            changes.push(Change::Camera);
+        }
+        if std::mem::take(&mut self.iterations) {
+            changes.push(Change::Iterations);
+        }
+        changes
+    }
+
+    fn is_empty(&self) -> bool {
+        self.tf_old.is_none() && !self.camera && !self.lights && !self.params && !self.iterations
+    }
 }
 
 /// GPU bytes a session needs for a viewport: the technique's buffers plus tone mapping and
-/// its readback copy.
+/// its readback copy, and the interactive preview's image.
 pub fn session_bytes(width: u32, height: u32) -> u64 {
-    accum_bytes(width, height) + 2 * width as u64 * height as u64 * 4 + 64 * 1024
+    let pixels = width as u64 * height as u64;
+    accum_bytes(width, height)
+        + 2 * pixels * 4
+        + pixels * crate::preview::BYTES_PER_PIXEL
+        + 64 * 1024
 }
 
 impl Renderer {
@@ -103,6 +179,8 @@ impl Renderer {
             tone_bind_group,
             width: scene.viewport.width,
             height: scene.viewport.height,
+            preview: None,
+            pending: Pending::default(),
         })
     }
 
@@ -114,13 +192,43 @@ impl Renderer {
         &self.volume
     }
 
-    /// Applies an edit; `scene` already holds the new state.
+    /// Records an edit that the preview shows at once and the technique sees at its next
+    /// `step` (merged with the other deferred edits); a viewport change is applied at once.
+    /// `scene` already holds the new state.
+    pub fn defer(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        change: &Change,
+    ) -> Result<(), EngineError> {
+        if *change == Change::Viewport {
+            return self.apply(engine, scene, change);
+        }
+        self.pending.push(change);
+        Ok(())
+    }
+
+    /// Whether deferred edits wait for the technique.
+    pub fn has_pending(&self) -> bool {
+        !self.pending.is_empty()
+    }
+
+    /// Hands the deferred edits to the technique.
+    pub fn catch_up(&mut self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
+        for change in self.pending.take(scene) {
+            self.technique.apply(engine, scene, &change)?;
+        }
+        engine.gpu.check()
+    }
+
+    /// Applies an edit (after any deferred ones); `scene` already holds the new state.
     pub fn apply(
         &mut self,
         engine: &Engine,
         scene: &Scene,
         change: &Change,
     ) -> Result<(), EngineError> {
+        self.catch_up(engine, scene)?;
         if *change == Change::Viewport {
             check_budget(engine, scene)?;
         }
@@ -143,6 +251,7 @@ impl Renderer {
         scene: &Scene,
         budget: Duration,
     ) -> Result<StepReport, EngineError> {
+        self.catch_up(engine, scene)?;
         let report = self.technique.step(engine, scene, budget)?;
         engine.gpu.check()?;
         Ok(report)
@@ -158,8 +267,28 @@ impl Renderer {
 
     pub fn stats(&self) -> TechniqueStats {
         let mut stats = self.technique.stats();
-        stats.memory_bytes += 2 * self.width as u64 * self.height as u64 * 4;
+        stats.memory_bytes += 2 * self.width as u64 * self.height as u64 * 4
+            + self.preview.as_ref().map_or(0, Preview::bytes);
         stats
+    }
+
+    /// Renders the interactive preview of `scene` at resolution `divisor` (1, 2, 4 or 8 per
+    /// axis): what viewers see while edits stream in, whatever the technique.
+    pub fn preview_frame(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        divisor: u32,
+    ) -> Result<(Frame, PreviewReport), EngineError> {
+        let preview = self
+            .preview
+            .get_or_insert_with(|| Preview::new(engine, self.volume.clone(), scene));
+        preview.render(engine, scene, divisor)
+    }
+
+    /// The preview, once one was rendered.
+    pub fn preview(&self) -> Option<&Preview> {
+        self.preview.as_ref()
     }
 
     /// Tone maps the current estimate and reads it back as RGBA8.
@@ -193,6 +322,8 @@ impl Renderer {
             iteration: self.technique.iteration(),
             target_iterations: self.technique.target_iterations(scene),
             converged: self.converged(scene),
+            divisor: 1,
+            preview: false,
         })
     }
 

@@ -26,6 +26,9 @@ pub const IRRADIANCE_CREATE: &str = include_str!("../../../shaders/irradiance_cr
 pub const IRRADIANCE_REQUESTS: &str = include_str!("../../../shaders/irradiance_requests.wgsl");
 pub const IRRADIANCE_UPDATE: &str = include_str!("../../../shaders/irradiance_update.wgsl");
 pub const IRRADIANCE_PRIORITY: &str = include_str!("../../../shaders/irradiance_priority.wgsl");
+pub const PREVIEW_COMMON: &str = include_str!("../../../shaders/preview_common.wgsl");
+pub const PREVIEW_LIGHT: &str = include_str!("../../../shaders/preview_light.wgsl");
+pub const PREVIEW_VIEW: &str = include_str!("../../../shaders/preview_view.wgsl");
 pub const TONEMAP: &str = include_str!("../../../shaders/tonemap.wgsl");
 
 /// The raymarch pass with its shared pieces.
@@ -122,6 +125,21 @@ pub fn irradiance(pass: &str) -> String {
     .concat()
 }
 
+/// The interactive preview's passes (`PREVIEW_LIGHT`: the light volume; `PREVIEW_VIEW`: the
+/// composited view rays), each with the shared pieces and the preview's bindings.
+pub fn preview(pass: &str) -> String {
+    [
+        COMMON,
+        VOLUME,
+        SCENE,
+        MACROCELL,
+        MARCH,
+        PREVIEW_COMMON,
+        pass,
+    ]
+    .concat()
+}
+
 pub fn tonemap() -> String {
     TONEMAP.to_owned()
 }
@@ -136,6 +154,8 @@ pub fn all() -> Vec<(&'static str, String)> {
         ("photon_gather", photon_gather()),
         ("photon_scatter", photon_scatter()),
         ("tonemap", tonemap()),
+        ("preview_light", preview(PREVIEW_LIGHT)),
+        ("preview_view", preview(PREVIEW_VIEW)),
         ("manylight_vls", manylight_vls()),
         ("manylight_avsm", manylight_avsm()),
         ("manylight_gather", manylight_gather()),

@@ -6,6 +6,7 @@ pub mod irradiance;
 pub mod manylight;
 pub mod pathtrace;
 pub mod photon;
+pub mod preview;
 pub mod raymarch;
 pub mod tonemap;
 

@@ -1,0 +1,32 @@
+// Shared pieces of the interactive preview (preview_light.wgsl, preview_view.wgsl): the
+// bindings both passes use and the light volume's layout. Rust twin: server/engine/src/passes/preview.rs.
+//
+// The light volume holds, on a coarse cell-centred grid over the box, the transmittance from
+// each grid point to every directional/point light (channel l < light_count) and its mean over
+// ENV_DIRECTIONS directions to the environment (channel light_count). It depends on the
+// opacity, the density scale and the lights only, never on the camera or the colours.
+
+struct PreviewParams {
+    light_dims: vec3<u32>,
+    // light_count + ENV_CHANNELS.
+    channels: u32,
+    // Preview image size (the viewport divided by the resolution divisor, rounded up).
+    width: u32,
+    height: u32,
+    pad0: u32,
+    pad1: u32,
+}
+
+@group(0) @binding(0) var<uniform> scene: SceneUniforms;
+@group(0) @binding(1) var volume_tex: texture_3d<f32>;
+@group(0) @binding(2) var<storage, read> tf_lut: array<vec4<f32>>;
+@group(0) @binding(3) var<storage, read> lights: array<GpuLight>;
+@group(0) @binding(4) var<storage, read> cell_max_opacity: array<f32>;
+@group(0) @binding(5) var<uniform> params: PreviewParams;
+@group(0) @binding(6) var<storage, read_write> light_volume: array<f32>;
+@group(0) @binding(7) var<storage, read_write> image: array<vec4<f32>>;
+
+fn light_index(c: u32, i: vec3<u32>) -> u32 {
+    let d = params.light_dims;
+    return ((c * d.z + i.z) * d.y + i.y) * d.x + i.x;
+}

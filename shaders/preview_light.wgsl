@@ -1,0 +1,56 @@
+// Interactive preview, pass 1: the light volume (preview_common.wgsl). One invocation per grid
+// point marches toward every light (midpoint rule, fixed jitter 0.5, so the volume is
+// deterministic) with the shadow rays' step of march.wgsl, empty cells skipped; the environment
+// channels hold ENV_DIRECTIONS Fibonacci-sphere directions' mean and first moment. Run once per opacity, density or
+// light edit; camera moves and colour edits reuse it.
+
+const ENV_DIRECTIONS: u32 = 16u;
+
+// Direction k of ENV_DIRECTIONS, evenly spread over the sphere (Fibonacci lattice).
+fn env_direction(k: u32) -> vec3<f32> {
+    let z = 1.0 - (2.0 * f32(k) + 1.0) / f32(ENV_DIRECTIONS);
+    let r = sqrt(max(0.0, 1.0 - z * z));
+    let phi = f32(k) * 2.399963229728653;
+    return vec3<f32>(r * cos(phi), r * sin(phi), z);
+}
+
+@compute @workgroup_size(4, 4, 4)
+fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if (any(gid >= params.light_dims)) {
+        return;
+    }
+    let u = (vec3<f32>(gid) + 0.5) / vec3<f32>(params.light_dims);
+    let p = scene.box_min + u * (scene.box_max - scene.box_min);
+    for (var l = 0u; l < scene.light_count; l++) {
+        let light = lights[l];
+        var tr = 0.0;
+        if (light.kind == LIGHT_DIRECTIONAL) {
+            tr = transmittance(p, -light.vector, 1e30, 0.5);
+        } else {
+            let offset = light.vector - p;
+            let dist = length(offset);
+            tr = transmittance(p, offset / max(dist, 1e-6), dist, 0.5);
+        }
+        light_volume[light_index(l, gid)] = tr;
+    }
+    // The environment's transmittance as a function of direction to first order,
+    // T(ω) ≈ mean + lobe·ω (spherical harmonics l ≤ 1): the view pass weights the lobe
+    // by the phase function's mean cosine g.
+    var mean = 0.0;
+    var lobe = vec3<f32>(0.0);
+    if (any(scene.env_radiance > vec3<f32>(0.0))) {
+        for (var k = 0u; k < ENV_DIRECTIONS; k++) {
+            let w = env_direction(k);
+            let tr = transmittance(p, w, 1e30, 0.5);
+            mean += tr;
+            lobe += tr * w;
+        }
+        mean /= f32(ENV_DIRECTIONS);
+        lobe *= 3.0 / f32(ENV_DIRECTIONS);
+    }
+    let env = scene.light_count;
+    light_volume[light_index(env, gid)] = mean;
+    light_volume[light_index(env + 1u, gid)] = lobe.x;
+    light_volume[light_index(env + 2u, gid)] = lobe.y;
+    light_volume[light_index(env + 3u, gid)] = lobe.z;
+}
