@@ -1,11 +1,11 @@
 // Interactive preview, pass 2: one deterministic view ray per preview pixel (its centre),
-// composited front to back at raymarch's view step (half a voxel), with empty-space
+// composited front to back at one voxel per step (twice raymarch's), with empty-space
 // skipping and early ray termination; the light at each sample comes from the light volume
 // (trilinear), so no sample casts a shadow ray. The same single-scattering sum as raymarch's
 // estimator, Σ T·(1 − exp(−σt·dt))·albedo·S(p) + T·L_env, without its noise.
 
 // Preview steps are this multiple of scene.step (half a voxel).
-const PREVIEW_STEP_SCALE: f32 = 1.0;
+const PREVIEW_STEP_SCALE: f32 = 2.0;
 
 // Below this view transmittance the ray stops: it can miss at most this share of the light.
 const PREVIEW_T_CUTOFF: f32 = 1e-3;

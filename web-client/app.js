@@ -1438,7 +1438,10 @@ function renderStatus() {
     const conv = $('st-conv');
     conv.textContent = m.converged ? 'converged' : 'converging…';
     conv.className = m.converged ? 'done' : 'conv';
-    $('st-codec').textContent = m.lossless ? 'lossless PNG' : `${String(m.format).toUpperCase()}${m.quality ? ' q' + m.quality : ''}`;
+    const codec = m.lossless ? 'lossless PNG' : `${String(m.format).toUpperCase()}${m.quality ? ' q' + m.quality : ''}`;
+    // A preview while edits stream in: shown at its resolution scale, upscaled to the canvas.
+    const scale = Number(m.resolution_scale ?? 1);
+    $('st-codec').textContent = m.preview ? `${codec} · preview ${scale === 1 ? 'full' : '1/' + Math.round(1 / scale)} res` : codec;
     $('st-size').textContent = `${m.width}×${m.height}`;
     const frac = m.target_iterations > 0 ? Math.min(1, m.iteration / m.target_iterations) : m.converged ? 1 : 0;
     $('progress-bar').style.width = `${(m.converged ? 1 : frac) * 100}%`;

@@ -498,11 +498,23 @@ pub struct FrameMeta {
     pub quality: Option<u8>,
     /// Counter of scene edits applied to this picture; a client can match its own edits.
     pub scene_version: u64,
+    /// An interactive preview (shown while edits stream in), not the technique's estimate:
+    /// single scattering lit from a light volume, whatever the technique.
+    #[serde(default)]
+    pub preview: bool,
+    /// Image size over the viewport's, per axis: 1, 0.5, 0.25 or 0.125 (the client scales the
+    /// picture up to its canvas).
+    #[serde(default = "full_scale")]
+    pub resolution_scale: f32,
     pub render_ms: f32,
     pub encode_ms: f32,
     /// Technique-specific figures (as in `stats`).
     #[serde(default)]
     pub details: TechniqueDetails,
+}
+
+fn full_scale() -> f32 {
+    1.0
 }
 
 /// A scene file for `voxlight render` (DESIGN.md "Fixed names"): the protocol's field names.
@@ -641,6 +653,8 @@ mod tests {
             lossless: true,
             quality: None,
             scene_version: 1,
+            preview: true,
+            resolution_scale: 0.25,
             render_ms: 1.0,
             encode_ms: 2.0,
             details: TechniqueDetails {

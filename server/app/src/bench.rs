@@ -567,3 +567,75 @@ fn median(mut values: Vec<f64>) -> f64 {
         n => 0.5 * (values[n / 2 - 1] + values[n / 2]),
     }
 }
+
+/// ms per interactive preview frame (engine::preview: view rays, tone mapping and readback)
+/// on the 256³ CT of `bench raymarch`, at each size and resolution divisor, over an orbit of
+/// 5° per frame (as VTK's baseline turns its camera), with the light volume's build time and
+/// one `raymarch` iteration at full resolution measured in the same run for the ratio.
+pub fn preview(options: &RaymarchBench) -> anyhow::Result<serde_json::Value> {
+    let engine = Engine::new()?;
+    let (dataset, volume) = ct_256(options.data_dir)?;
+    let gpu_volume = engine.upload_volume(&volume)?;
+    let frames = options.iterations.max(1);
+    let mut results = Vec::new();
+    for &size in options.sizes {
+        let mut scene = Scene {
+            camera: Camera::default(),
+            tf: crate::datasets::default_tf(&volume),
+            lights: default_lights(),
+            viewport: Viewport {
+                width: size,
+                height: size,
+            },
+            target_iterations: u32::MAX,
+            ..Scene::default()
+        };
+        let mut renderer = engine.create_renderer("raymarch", Arc::clone(&gpu_volume), &scene)?;
+        let started = Instant::now();
+        renderer.step(&engine, &scene, Duration::ZERO)?;
+        let raymarch_ms = started.elapsed().as_secs_f64() * 1000.0;
+        // The first preview builds the light volume (and compiles nothing new: pipelines exist).
+        let (_, first) = renderer.preview_frame(&engine, &scene, 1)?;
+        let light_ms = first.light_time.as_secs_f64() * 1000.0;
+        let eye = scene.camera.eye;
+        let mut per_divisor = Vec::new();
+        for divisor in voxlight_engine::preview::DIVISORS {
+            let mut times = Vec::new();
+            for frame in 0..frames {
+                let angle = (frame as f32 * 5.0).to_radians();
+                let (sin, cos) = angle.sin_cos();
+                scene.camera.eye = [
+                    eye[0] * cos - eye[1] * sin,
+                    eye[0] * sin + eye[1] * cos,
+                    eye[2],
+                ];
+                let (_, report) = renderer.preview_frame(&engine, &scene, divisor)?;
+                anyhow::ensure!(
+                    !report.light_rebuilt,
+                    "a camera move rebuilt the light volume"
+                );
+                times.push(report.view_time.as_secs_f64() * 1000.0);
+            }
+            let ms = median(times);
+            eprintln!(
+                "preview {size}x{size} at 1/{divisor}: {ms:.1} ms/frame (raymarch iteration {raymarch_ms:.0} ms, light volume {light_ms:.0} ms)"
+            );
+            per_divisor.push(json!({"divisor": divisor, "median_ms": ms, "frames": frames}));
+        }
+        results.push(json!({
+            "width": size,
+            "height": size,
+            "raymarch_iteration_ms": raymarch_ms,
+            "light_volume_ms": light_ms,
+            "previews": per_divisor,
+        }));
+    }
+    Ok(json!({
+        "bench": "preview",
+        "adapter": engine.gpu.adapter_name(),
+        "software_renderer": engine.gpu.is_software(),
+        "dataset": dataset,
+        "dims": volume.dims,
+        "results": results,
+    }))
+}

@@ -387,6 +387,8 @@ fn encode_frame(
         lossless: format == FrameFormat::Png,
         quality,
         scene_version: rendered.scene_version,
+        preview: frame.preview,
+        resolution_scale: 1.0 / frame.divisor.max(1) as f32,
         render_ms: rendered.render_ms,
         encode_ms: started.elapsed().as_secs_f32() * 1000.0,
         details: details.clone(),

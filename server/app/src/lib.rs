@@ -65,6 +65,9 @@ pub struct ServerConfig {
     /// GPU bytes all sessions and volumes together may use; `DEFAULT_GPU_MEMORY_BUDGET`
     /// when unset.
     pub gpu_memory_budget: Option<u64>,
+    /// The interaction mode (previews while edits stream in); off when unset (`voxlight serve`
+    /// turns it on with `Interaction::default()`).
+    pub interaction: Option<render_service::Interaction>,
 }
 
 /// Default global GPU memory budget: 4 GiB, which fits most GPUs that run this (a larger
@@ -103,8 +106,14 @@ impl Server {
         let budget = config
             .gpu_memory_budget
             .unwrap_or(DEFAULT_GPU_MEMORY_BUDGET);
-        let (render, render_thread) =
-            render_service::spawn(Arc::new(engine), metrics.clone(), budget)?;
+        let (render, render_thread) = render_service::spawn(
+            Arc::new(engine),
+            metrics.clone(),
+            budget,
+            config
+                .interaction
+                .unwrap_or(render_service::Interaction::OFF),
+        )?;
         if config.preload {
             let catalog = catalog.clone();
             std::thread::Builder::new()

@@ -57,6 +57,15 @@ enum Command {
         /// exceed it is refused with `gpu_memory`.
         #[arg(long, default_value_t = voxlight_server::DEFAULT_GPU_MEMORY_BUDGET >> 20)]
         gpu_memory_mib: u64,
+        /// Preview frame time (ms) the interaction mode picks its resolution scale for while
+        /// edits stream in; 0 turns the interaction mode off (every edit goes straight to the
+        /// technique at full resolution).
+        #[arg(long, default_value_t = 60)]
+        interactive_frame_ms: u64,
+        /// Milliseconds without an edit after which input counts as stopped and the technique
+        /// refines the still.
+        #[arg(long, default_value_t = 250)]
+        rest_after_ms: u64,
     },
     /// Scripted viewers against a running server: each session has an editor that orbits
     /// the camera and edits the TF, and watchers that join it. Reports input-to-frame
@@ -251,6 +260,8 @@ fn run() -> anyhow::Result<()> {
             allowed_origins,
             grace_period_s,
             gpu_memory_mib,
+            interactive_frame_ms,
+            rest_after_ms,
         } => {
             if let Some(file) = tokens_file {
                 let text = std::fs::read_to_string(&file)
@@ -274,6 +285,11 @@ fn run() -> anyhow::Result<()> {
                     },
                     grace_period: Some(Duration::from_secs(grace_period_s)),
                     gpu_memory_budget: Some(gpu_memory_mib.saturating_mul(1 << 20)),
+                    interaction: Some(voxlight_server::render_service::Interaction {
+                        enabled: interactive_frame_ms > 0,
+                        frame_target: Duration::from_millis(interactive_frame_ms),
+                        rest_after: Duration::from_millis(rest_after_ms),
+                    }),
                 },
             )
         }
@@ -461,8 +477,13 @@ fn run() -> anyhow::Result<()> {
                     iterations: iterations.max(1),
                     reference_spp: reference_spp.unwrap_or(64).max(1),
                 })?,
+                "preview" => bench::preview(&bench::RaymarchBench {
+                    data_dir: data.as_deref(),
+                    sizes: &sizes,
+                    iterations: iterations.max(1),
+                })?,
                 other => anyhow::bail!(
-                    "unknown benchmark `{other}`; available: raymarch, tf-edit, manylight, convergence"
+                    "unknown benchmark `{other}`; available: raymarch, preview, tf-edit, manylight, convergence"
                 ),
             };
             if json {

@@ -6,6 +6,12 @@
 //! last `INTERACTIVE_WINDOW` (someone is dragging the camera or editing the TF) come first;
 //! the others still get every `BACKGROUND_TURN`-th slice so they never starve. Converged
 //! sessions and sessions without viewers (in their reconnect grace period) get none.
+//! Interaction mode (docs/architecture.md): while edits stream in, a session's first slice
+//! after each edit renders the engine's preview (any technique) at a resolution divisor
+//! adapted to `Interaction::frame_target`, and the technique sees the edits only once input
+//! has rested for `Interaction::rest_after` (merged, so a drag costs it one update). At rest a
+//! reduced preview is followed by a full-resolution one, then the technique refines to its
+//! converged, lossless still.
 //! GPU memory: every session and uploaded volume is counted against a global budget, and a
 //! session, dataset switch or viewport that would exceed it is refused (`gpu_memory`).
 
@@ -34,6 +40,54 @@ pub const INTERACTIVE_WINDOW: Duration = Duration::from_secs(1);
 const BACKGROUND_TURN: u64 = 4;
 
 pub type SessionId = u64;
+
+/// How sessions behave while edits stream in.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Interaction {
+    /// Off: every edit goes to the technique at once and no preview is rendered.
+    pub enabled: bool,
+    /// Preview frame time the resolution divisor is chosen for.
+    pub frame_target: Duration,
+    /// Input counts as stopped after this long without an edit.
+    pub rest_after: Duration,
+}
+
+impl Interaction {
+    /// Every edit straight to the technique, no previews.
+    pub const OFF: Self = Self {
+        enabled: false,
+        frame_target: Duration::ZERO,
+        rest_after: Duration::ZERO,
+    };
+}
+
+impl Default for Interaction {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            frame_target: Duration::from_millis(60),
+            rest_after: Duration::from_millis(250),
+        }
+    }
+}
+
+/// The resolution divisor for the next preview after one at `current` took `took`: the finest
+/// of `voxlight_engine::preview::DIVISORS` whose predicted time (cost ∝ pixels) fits `target`;
+/// a finer one than now only with 30% to spare, so the scale does not flicker.
+pub fn next_divisor(current: u32, took: Duration, target: Duration) -> u32 {
+    use voxlight_engine::preview::DIVISORS;
+    let at_full = took.as_secs_f64() * f64::from(current * current);
+    let target = target.as_secs_f64();
+    DIVISORS
+        .iter()
+        .copied()
+        .find(|&d| {
+            let predicted = at_full / f64::from(d * d);
+            let headroom = if d < current { 0.7 } else { 1.0 };
+            predicted <= target * headroom
+        })
+        .unwrap_or(DIVISORS[DIVISORS.len() - 1])
+}
 
 /// A frame as rendered, before encoding.
 #[derive(Debug)]
@@ -137,6 +191,12 @@ struct Session {
     /// A frame of the current state is still owed to viewers.
     dirty: bool,
     failed: bool,
+    /// The technique has not stepped since its last edits (its first step is one iteration).
+    technique_fresh: bool,
+    /// Resolution divisor of the next preview.
+    divisor: u32,
+    /// Divisor of the last frame sent when it was a preview.
+    shown_preview: Option<u32>,
 }
 
 impl Session {
@@ -146,8 +206,23 @@ impl Session {
         self.renderer.stats().memory_bytes.max(estimate)
     }
 
-    fn wants_gpu(&self) -> bool {
+    fn owes_frame(&self) -> bool {
         self.dirty && !self.failed && self.viewers.load(Ordering::Relaxed) > 0
+    }
+
+    /// Edits arrived within `rest_after`: the technique waits, the preview shows them.
+    fn moving(&self, interaction: &Interaction, now: Instant) -> bool {
+        interaction.enabled && now.duration_since(self.last_edit) < interaction.rest_after
+    }
+
+    fn wants_gpu(&self, interaction: &Interaction, now: Instant) -> bool {
+        self.owes_frame() && (self.fresh_edit || !self.moving(interaction, now))
+    }
+
+    /// When a session that waits for input to rest will want GPU time.
+    fn wakes_at(&self, interaction: &Interaction, now: Instant) -> Option<Instant> {
+        (self.owes_frame() && !self.fresh_edit && self.moving(interaction, now))
+            .then(|| self.last_edit + interaction.rest_after)
     }
 
     fn report(&self, error: &EngineError) {
@@ -164,11 +239,14 @@ pub fn spawn(
     engine: Arc<Engine>,
     metrics: Arc<crate::metrics::Metrics>,
     memory_budget: u64,
+    interaction: Interaction,
 ) -> std::io::Result<(RenderHandle, std::thread::JoinHandle<()>)> {
     let (commands, receiver) = mpsc::channel(COMMAND_QUEUE);
     let thread = std::thread::Builder::new()
         .name("voxlight-render".into())
-        .spawn(move || RenderThread::new(engine, metrics, memory_budget).run(receiver))?;
+        .spawn(move || {
+            RenderThread::new(engine, metrics, memory_budget, interaction).run(receiver)
+        })?;
     Ok((RenderHandle { commands }, thread))
 }
 
@@ -178,6 +256,7 @@ struct RenderThread {
     sessions: HashMap<SessionId, Session>,
     volumes: HashMap<String, Weak<GpuVolume>>,
     memory_budget: u64,
+    interaction: Interaction,
     /// Round-robin position.
     last_served: SessionId,
     /// Slices served, for the background turn.
@@ -185,13 +264,19 @@ struct RenderThread {
 }
 
 impl RenderThread {
-    fn new(engine: Arc<Engine>, metrics: Arc<crate::metrics::Metrics>, memory_budget: u64) -> Self {
+    fn new(
+        engine: Arc<Engine>,
+        metrics: Arc<crate::metrics::Metrics>,
+        memory_budget: u64,
+        interaction: Interaction,
+    ) -> Self {
         Self {
             engine,
             metrics,
             sessions: HashMap::new(),
             volumes: HashMap::new(),
             memory_budget,
+            interaction,
             last_served: 0,
             turn: 0,
         }
@@ -262,9 +347,26 @@ impl RenderThread {
     fn run(mut self, mut receiver: mpsc::Receiver<Command>) {
         tracing::info!("render thread started");
         loop {
-            let busy = self.sessions.values().any(Session::wants_gpu);
+            let now = Instant::now();
+            let busy = self
+                .sessions
+                .values()
+                .any(|s| s.wants_gpu(&self.interaction, now));
+            let wake = self
+                .sessions
+                .values()
+                .filter_map(|s| s.wakes_at(&self.interaction, now))
+                .min();
             if !busy {
-                match receiver.blocking_recv() {
+                let command = match wake {
+                    None => receiver.blocking_recv(),
+                    Some(deadline) => match wait_until(&mut receiver, deadline) {
+                        Waited::Command(command) => Some(command),
+                        Waited::Deadline => continue,
+                        Waited::Disconnected => None,
+                    },
+                };
+                match command {
                     Some(Command::Stop) | None => break,
                     Some(command) => self.handle(command),
                 }
@@ -297,7 +399,7 @@ impl RenderThread {
         let mut waiting: Vec<(SessionId, bool)> = self
             .sessions
             .iter()
-            .filter(|(_, s)| s.wants_gpu())
+            .filter(|(_, s)| s.wants_gpu(&self.interaction, now))
             .map(|(id, s)| (*id, now.duration_since(s.last_edit) < INTERACTIVE_WINDOW))
             .collect();
         waiting.sort_unstable();
@@ -352,6 +454,9 @@ impl RenderThread {
                                 fresh_edit: true,
                                 dirty: true,
                                 failed: false,
+                                technique_fresh: true,
+                                divisor: 1,
+                                shown_preview: None,
                             },
                         );
                         self.publish_memory();
@@ -384,8 +489,15 @@ impl RenderThread {
                 session.dirty = true;
                 session.last_edit = Instant::now();
                 session.fresh_edit = true;
+                session.technique_fresh = true;
+                let interactive = self.interaction.enabled;
                 for change in &changes {
-                    if let Err(e) = session.renderer.apply(&self.engine, &session.scene, change) {
+                    let applied = if interactive {
+                        session.renderer.defer(&self.engine, &session.scene, change)
+                    } else {
+                        session.renderer.apply(&self.engine, &session.scene, change)
+                    };
+                    if let Err(e) = applied {
                         session.failed = true;
                         session.report(&e);
                         break;
@@ -424,6 +536,8 @@ impl RenderThread {
                         session.version = version;
                         session.last_edit = Instant::now();
                         session.fresh_edit = true;
+                        session.technique_fresh = true;
+                        session.shown_preview = None;
                         session.dirty = true;
                         session.failed = false;
                         self.volumes.retain(|_, weak| weak.strong_count() > 0);
@@ -447,29 +561,63 @@ impl RenderThread {
         }
     }
 
-    /// One time slice for a session: progressive work, then a frame for its viewers.
+    /// One time slice for a session: a preview of its newest edit while input streams in (and
+    /// once at full resolution when it rests), else progressive work; then a frame for its
+    /// viewers.
     fn serve(&mut self, id: SessionId) {
         self.last_served = id;
         let engine = self.engine.clone();
+        let interaction = self.interaction;
         let Some(session) = self.sessions.get_mut(&id) else {
             return;
         };
         let started = Instant::now();
-        let budget = if session.fresh_edit {
-            Duration::ZERO
+        let preview_divisor = if !interaction.enabled {
+            None
+        } else if session.fresh_edit && session.moving(&interaction, started) {
+            Some(session.divisor)
         } else {
-            TIME_SLICE
+            // At rest: a reduced preview is replaced by a full-resolution one first.
+            session.shown_preview.filter(|&d| d > 1).map(|_| 1)
         };
         session.fresh_edit = false;
-        let result = session
-            .renderer
-            .step(&engine, &session.scene, budget)
-            .and_then(|report| Ok((report, session.renderer.frame(&engine, &session.scene)?)));
+        let result = match preview_divisor {
+            Some(divisor) => session
+                .renderer
+                .preview_frame(&engine, &session.scene, divisor)
+                .map(|(frame, report)| {
+                    if session.moving(&interaction, started) {
+                        session.divisor =
+                            next_divisor(divisor, report.view_time, interaction.frame_target);
+                    }
+                    session.shown_preview = Some(divisor);
+                    (report.view_time + report.light_time, frame)
+                }),
+            None => {
+                let budget = if session.technique_fresh {
+                    Duration::ZERO
+                } else {
+                    TIME_SLICE
+                };
+                session.technique_fresh = false;
+                session.shown_preview = None;
+                session
+                    .renderer
+                    .step(&engine, &session.scene, budget)
+                    .and_then(|report| {
+                        self.metrics
+                            .gpu_time(session.renderer.technique_name(), report.gpu_time);
+                        Ok((
+                            report.gpu_time,
+                            session.renderer.frame(&engine, &session.scene)?,
+                        ))
+                    })
+            }
+        };
         match result {
-            Ok((report, frame)) => {
-                self.metrics
-                    .gpu_time(session.renderer.technique_name(), report.gpu_time);
-                session.dirty = !frame.converged;
+            Ok((gpu_time, frame)) => {
+                // A preview still owes the technique's picture.
+                session.dirty = frame.preview || !frame.converged;
                 session.frame_number += 1;
                 self.metrics.frames_rendered.fetch_add(1, Ordering::Relaxed);
                 let rendered = RenderedFrame {
@@ -477,7 +625,7 @@ impl RenderThread {
                     technique: session.renderer.technique_name(),
                     scene_version: session.version,
                     render_ms: started.elapsed().as_secs_f32() * 1000.0,
-                    gpu_ms: report.gpu_time.as_secs_f32() * 1000.0,
+                    gpu_ms: gpu_time.as_secs_f32() * 1000.0,
                     stats: session.renderer.stats(),
                     frame,
                 };
@@ -489,6 +637,30 @@ impl RenderThread {
                 session.report(&e);
             }
         }
+    }
+}
+
+enum Waited {
+    Command(Command),
+    Deadline,
+    Disconnected,
+}
+
+/// Waits for a command until `deadline` (the render thread has no async runtime: it polls in
+/// short sleeps, only while a session waits for its input to rest).
+fn wait_until(receiver: &mut mpsc::Receiver<Command>, deadline: Instant) -> Waited {
+    const POLL: Duration = Duration::from_millis(2);
+    loop {
+        match receiver.try_recv() {
+            Ok(command) => return Waited::Command(command),
+            Err(mpsc::error::TryRecvError::Disconnected) => return Waited::Disconnected,
+            Err(mpsc::error::TryRecvError::Empty) => {}
+        }
+        let now = Instant::now();
+        if now >= deadline {
+            return Waited::Deadline;
+        }
+        std::thread::sleep(POLL.min(deadline - now));
     }
 }
 
@@ -518,6 +690,24 @@ fn pick_round_robin(waiting: &[(SessionId, bool)], last: SessionId) -> Option<Se
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn divisor_coarsens_when_slow_and_refines_with_headroom() {
+        let target = Duration::from_millis(60);
+        let ms = Duration::from_millis;
+        // Fast enough at full resolution: stay there.
+        assert_eq!(next_divisor(1, ms(30), target), 1);
+        // 200 ms at full resolution: a quarter of the pixels takes ~50 ms.
+        assert_eq!(next_divisor(1, ms(200), target), 2);
+        // 40 ms at divisor 2 predicts 160 ms at 1: stay at 2.
+        assert_eq!(next_divisor(2, ms(40), target), 2);
+        // 10 ms at divisor 2 predicts 40 ms at 1, within 70% of the target: refine.
+        assert_eq!(next_divisor(2, ms(10), target), 1);
+        // 13 ms at 2 predicts 52 ms at 1: fits the target but not the headroom.
+        assert_eq!(next_divisor(2, ms(13), target), 2);
+        // Hopelessly slow: the coarsest.
+        assert_eq!(next_divisor(1, Duration::from_secs(30), target), 8);
+    }
 
     #[test]
     fn round_robin_wraps_and_skips_nothing() {

@@ -25,7 +25,7 @@ pub const DIVISORS: [u32; 4] = [1, 2, 4, 8];
 /// Light-volume grid points per axis: about one per `LIGHT_CELL_VOXELS` voxels, at most
 /// `MAX_LIGHT_DIM`.
 const LIGHT_CELL_VOXELS: u32 = 2;
-const MAX_LIGHT_DIM: u32 = 64;
+const MAX_LIGHT_DIM: u32 = 32;
 
 /// Light-volume channels of the environment (preview_light.wgsl: its transmittance's mean and
 /// first moment over directions).
@@ -329,8 +329,8 @@ mod tests {
 
     #[test]
     fn light_grid_follows_the_volume_and_is_capped() {
-        assert_eq!(light_dims([256, 256, 256]), [64, 64, 64]);
-        assert_eq!(light_dims([512, 512, 128]), [64, 64, 64]);
+        assert_eq!(light_dims([256, 256, 256]), [32, 32, 32]);
+        assert_eq!(light_dims([512, 512, 128]), [32, 32, 32]);
         assert_eq!(light_dims([32, 32, 3]), [16, 16, 2]);
     }
 

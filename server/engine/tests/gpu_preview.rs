@@ -72,9 +72,9 @@ fn sphere_scene(size: u32, iterations: u32) -> (Arc<GpuVolume>, Scene) {
     (volume, scene)
 }
 
-/// Tolerances measured on lavapipe: the sphere (smooth medium, point light, environment,
-/// g = 0.4) 0.4% in the mean and 1.3% RMS; the Cornell phantom (walls two voxels thick,
-/// thinner than the light volume's cell, and labelled materials) 1.9% and 25% RMS (its
+/// Tolerances around what lavapipe measured: the sphere (smooth medium, point light, environment,
+/// g = 0.4) 0.3% in the mean and 1.9% RMS; the Cornell phantom (walls two voxels thick,
+/// as thin as the light volume's cell, and labelled materials) 1.9% and 27% RMS (its
 /// reference is still noisy at 128 iterations).
 #[test]
 fn preview_agrees_with_converged_raymarch() {
