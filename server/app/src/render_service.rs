@@ -361,7 +361,7 @@ impl RenderThread {
                 let command = match wake {
                     None => receiver.blocking_recv(),
                     Some(deadline) => match wait_until(&mut receiver, deadline) {
-                        Waited::Command(command) => Some(command),
+                        Waited::Command(command) => Some(*command),
                         Waited::Deadline => continue,
                         Waited::Disconnected => None,
                     },
@@ -641,7 +641,7 @@ impl RenderThread {
 }
 
 enum Waited {
-    Command(Command),
+    Command(Box<Command>),
     Deadline,
     Disconnected,
 }
@@ -652,7 +652,7 @@ fn wait_until(receiver: &mut mpsc::Receiver<Command>, deadline: Instant) -> Wait
     const POLL: Duration = Duration::from_millis(2);
     loop {
         match receiver.try_recv() {
-            Ok(command) => return Waited::Command(command),
+            Ok(command) => return Waited::Command(Box::new(command)),
             Err(mpsc::error::TryRecvError::Disconnected) => return Waited::Disconnected,
             Err(mpsc::error::TryRecvError::Empty) => {}
         }

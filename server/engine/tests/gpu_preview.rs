@@ -7,8 +7,8 @@ mod common;
 use std::sync::Arc;
 
 use common::*;
-use voxlight_engine::{Change, GpuVolume, Scene};
-use voxlight_protocol::{Camera, Light, TransferFunction};
+use voxlight_engine::{GpuVolume, Scene};
+use voxlight_protocol::{Camera, Light};
 
 fn luminance(p: &[f32; 3]) -> f64 {
     (0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2]) as f64
