@@ -5,6 +5,7 @@ use std::mem::{offset_of, size_of};
 
 use voxlight_engine::passes::irradiance::{CacheEntry, DispatchInfo, IrradianceParams, Request};
 use voxlight_engine::passes::manylight::{ManylightParams, VirtualLight};
+use voxlight_engine::passes::preview::PreviewParams;
 use voxlight_engine::passes::tonemap::ToneParams;
 use voxlight_engine::scene_gpu::{GpuLight, SceneUniforms};
 use voxlight_engine::shaders;
@@ -118,6 +119,13 @@ fn rust_and_wgsl_layouts_agree() {
         "ToneParams",
         size_of::<ToneParams>(),
         fields!(ToneParams: width, height, exposure, pad0),
+    );
+    let preview = parse_and_validate("preview_view", &shaders::preview(shaders::PREVIEW_VIEW));
+    assert_layout(
+        &preview,
+        "PreviewParams",
+        size_of::<PreviewParams>(),
+        fields!(PreviewParams: light_dims, channels, width, height, pad0, pad1),
     );
     let gather = parse_and_validate("manylight_gather", &shaders::manylight_gather());
     assert_layout(
