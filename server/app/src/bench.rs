@@ -26,6 +26,22 @@ pub fn ct_256(data_dir: Option<&Path>) -> anyhow::Result<(String, voxlight_volum
     Ok((dataset, volume))
 }
 
+/// The scene `bench raymarch` and `bench preview` time: the dataset's default TF, the default
+/// camera and lights, a size² viewport, no convergence.
+fn speed_scene(volume: &voxlight_volumes::Volume, size: u32) -> Scene {
+    Scene {
+        camera: Camera::default(),
+        tf: crate::datasets::default_tf(volume),
+        lights: default_lights(),
+        viewport: Viewport {
+            width: size,
+            height: size,
+        },
+        target_iterations: u32::MAX,
+        ..Scene::default()
+    }
+}
+
 /// Options of `bench raymarch`.
 pub struct RaymarchBench<'a> {
     pub data_dir: Option<&'a Path>,
@@ -41,17 +57,7 @@ pub fn raymarch(options: &RaymarchBench) -> anyhow::Result<serde_json::Value> {
     let gpu_volume = engine.upload_volume(&volume)?;
     let mut results = Vec::new();
     for &size in options.sizes {
-        let scene = Scene {
-            camera: Camera::default(),
-            tf: crate::datasets::default_tf(&volume),
-            lights: default_lights(),
-            viewport: Viewport {
-                width: size,
-                height: size,
-            },
-            target_iterations: u32::MAX,
-            ..Scene::default()
-        };
+        let scene = speed_scene(&volume, size);
         let mut renderer = engine.create_renderer("raymarch", Arc::clone(&gpu_volume), &scene)?;
         // Warm up (pipeline compilation, first touches), then time whole iterations.
         renderer.step(&engine, &scene, Duration::ZERO)?;
@@ -579,17 +585,7 @@ pub fn preview(options: &RaymarchBench) -> anyhow::Result<serde_json::Value> {
     let frames = options.iterations.max(1);
     let mut results = Vec::new();
     for &size in options.sizes {
-        let mut scene = Scene {
-            camera: Camera::default(),
-            tf: crate::datasets::default_tf(&volume),
-            lights: default_lights(),
-            viewport: Viewport {
-                width: size,
-                height: size,
-            },
-            target_iterations: u32::MAX,
-            ..Scene::default()
-        };
+        let mut scene = speed_scene(&volume, size);
         let mut renderer = engine.create_renderer("raymarch", Arc::clone(&gpu_volume), &scene)?;
         let started = Instant::now();
         renderer.step(&engine, &scene, Duration::ZERO)?;
