@@ -11,9 +11,13 @@ const SHADOW_STEP_SCALE: f32 = 2.0;
 // Transmittance from p along dir over at most t_max, by a jittered Riemann sum of the optical
 // depth (an unbiased estimate of it for a jitter uniform over one step).
 fn transmittance(p: vec3<f32>, dir: vec3<f32>, t_max: f32, jitter: f32) -> f32 {
+    return transmittance_with_step(p, dir, t_max, jitter, scene.step * SHADOW_STEP_SCALE);
+}
+
+// The same at a given step.
+fn transmittance_with_step(p: vec3<f32>, dir: vec3<f32>, t_max: f32, jitter: f32, step: f32) -> f32 {
     let hit = intersect_box(p, dir, scene.box_min, scene.box_max);
     let t_end = min(hit.y, t_max);
-    let step = scene.step * SHADOW_STEP_SCALE;
     var tau = 0.0;
     var k = 0.0;
     loop {

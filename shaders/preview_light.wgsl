@@ -6,33 +6,11 @@
 
 const ENV_DIRECTIONS: u32 = 8u;
 
-// Transmittance from p along dir over at most t_max: the midpoint rule at half a light-volume
-// cell per step (coarser steps miss walls two voxels thick), empty cells skipped.
+// Transmittance from p along dir over at most t_max (march.wgsl): the midpoint rule at half a
+// light-volume cell per step (coarser steps miss walls two voxels thick).
 fn light_transmittance(p: vec3<f32>, dir: vec3<f32>, t_max: f32) -> f32 {
-    let hit = intersect_box(p, dir, scene.box_min, scene.box_max);
-    let t_end = min(hit.y, t_max);
     let cell = (scene.box_max - scene.box_min) / vec3<f32>(params.light_dims);
-    let step = 0.5 * min(min(cell.x, cell.y), cell.z);
-    var tau = 0.0;
-    var k = 0.0;
-    loop {
-        let t = hit.x + (k + 0.5) * step;
-        if (t >= t_end) {
-            break;
-        }
-        let x = p + dir * t;
-        let c = cell_of(box_relative(x));
-        if (cell_is_empty(c)) {
-            k = skip_empty_cell(p, dir, c, hit.x, step, 0.5, k);
-            continue;
-        }
-        tau += medium_at(x).a * step;
-        if (tau > SHADOW_TAU_CUTOFF) {
-            return 0.0;
-        }
-        k += 1.0;
-    }
-    return exp(-tau);
+    return transmittance_with_step(p, dir, t_max, 0.5, 0.5 * min(min(cell.x, cell.y), cell.z));
 }
 
 // Direction k of ENV_DIRECTIONS, evenly spread over the sphere (Fibonacci lattice).
