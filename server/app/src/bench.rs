@@ -565,7 +565,7 @@ pub fn tf_edit_census(options: &TfEditBench) -> anyhow::Result<serde_json::Value
 }
 
 /// The median of some timings (the mean of the middle two for an even count).
-fn median(mut values: Vec<f64>) -> f64 {
+pub(crate) fn median(mut values: Vec<f64>) -> f64 {
     values.sort_by(f64::total_cmp);
     match values.len() {
         0 => f64::NAN,

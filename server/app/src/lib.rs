@@ -6,6 +6,7 @@ pub mod auth;
 pub mod bench;
 pub mod bench_irradiance;
 pub mod bench_manylight;
+pub mod bench_vtk;
 pub mod datasets;
 pub mod encode;
 pub mod hub;

@@ -188,9 +188,10 @@ enum Command {
         /// `convergence`: light setups (1, 3, 4 lights as in the paper's Table 2).
         #[arg(long, value_delimiter = ',', default_value = "1,3,4")]
         lights: Vec<u32>,
-        /// `convergence`: datasets of ../shared/data.
-        #[arg(long, value_delimiter = ',', default_value = "bonsai,chest,engine")]
-        datasets: Vec<String>,
+        /// `convergence`: datasets of ../shared/data (default bonsai,chest,engine);
+        /// `preview-vtk`: those of VTK's baseline (default bonsai,ct).
+        #[arg(long, value_delimiter = ',')]
+        datasets: Option<Vec<String>>,
         /// `convergence`, `tf-edit --technique irradiance`: largest cache-zone radius in voxels
         /// (the technique's default when absent).
         #[arg(long)]
@@ -454,6 +455,9 @@ fn run() -> anyhow::Result<()> {
                     }
                 }
                 "convergence" => {
+                    let datasets = datasets.clone().unwrap_or_else(|| {
+                        ["bonsai", "chest", "engine"].map(str::to_owned).to_vec()
+                    });
                     bench_irradiance::convergence(&bench_irradiance::ConvergenceBench {
                         data_dir: data.as_deref(),
                         size: size.max(8),
@@ -482,8 +486,21 @@ fn run() -> anyhow::Result<()> {
                     sizes: &sizes,
                     iterations: iterations.max(1),
                 })?,
+                "preview-vtk" => {
+                    let vtk_datasets = datasets
+                        .clone()
+                        .unwrap_or_else(|| vec!["bonsai".to_owned(), "ct".to_owned()]);
+                    voxlight_server::bench_vtk::preview_vtk(
+                        &voxlight_server::bench_vtk::PreviewVtkBench {
+                            data_dir: data.as_deref(),
+                            sizes: &sizes,
+                            frames: iterations.max(1),
+                            datasets: &vtk_datasets,
+                        },
+                    )?
+                }
                 other => anyhow::bail!(
-                    "unknown benchmark `{other}`; available: raymarch, preview, tf-edit, manylight, convergence"
+                    "unknown benchmark `{other}`; available: raymarch, preview, preview-vtk, tf-edit, manylight, convergence"
                 ),
             };
             if json {
