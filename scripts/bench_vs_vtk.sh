@@ -16,7 +16,7 @@ python3 "$shared/baselines/vtk/bench_vtk.py" --data "$shared/data" --datasets bo
     --mappers fixedpoint --sizes "$size" --shade 1 --sample-modes default --frames "$frames" \
     --msaa-side-sizes "" --no-screenshots --out "$out/vtk.json" >&2
 target/release/voxlight bench preview-vtk --data "$shared/data" --sizes "$size" \
-    --iterations "$frames" --json 2>&2 | tail -n 1 > "$out/voxlight.json"
+    --iterations "$frames" --json | tail -n 1 > "$out/voxlight.json"
 python3 - "$out/vtk.json" "$out/voxlight.json" <<'PY'
 import json, sys
 vtk = json.load(open(sys.argv[1]))

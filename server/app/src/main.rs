@@ -118,7 +118,7 @@ enum Command {
         #[arg(long)]
         pfm: Option<PathBuf>,
     },
-    /// Run a benchmark (`raymarch`, `tf-edit`, `manylight`, `convergence`).
+    /// Run a benchmark (`raymarch`, `preview`, `preview-vtk`, `tf-edit`, `manylight`, `convergence`).
     Bench {
         name: String,
         /// Technique measured by `tf-edit`.
