@@ -565,6 +565,33 @@ pub fn tf_edit_census(options: &TfEditBench) -> anyhow::Result<serde_json::Value
 }
 
 /// The median of some timings (the mean of the middle two for an even count).
+/// The median preview time (ms) at each of `DIVISORS` over `frames` frames of an orbit 5° apart:
+/// `turn(scene, angle)` places the camera `angle` radians along it. Fails when a camera move
+/// rebuilt the light volume.
+pub(crate) fn orbit_previews(
+    engine: &Engine,
+    renderer: &mut voxlight_engine::Renderer,
+    scene: &mut Scene,
+    frames: u32,
+    mut turn: impl FnMut(&mut Scene, f32),
+) -> anyhow::Result<Vec<(u32, f64)>> {
+    let mut medians = Vec::new();
+    for divisor in voxlight_engine::preview::DIVISORS {
+        let mut times = Vec::new();
+        for frame in 0..frames {
+            turn(scene, (frame as f32 * 5.0).to_radians());
+            let (_, report) = renderer.preview_frame(engine, scene, divisor)?;
+            anyhow::ensure!(
+                !report.light_rebuilt,
+                "a camera move rebuilt the light volume"
+            );
+            times.push(report.view_time.as_secs_f64() * 1000.0);
+        }
+        medians.push((divisor, median(times)));
+    }
+    Ok(medians)
+}
+
 pub(crate) fn median(mut values: Vec<f64>) -> f64 {
     values.sort_by(f64::total_cmp);
     match values.len() {
@@ -594,25 +621,22 @@ pub fn preview(options: &RaymarchBench) -> anyhow::Result<serde_json::Value> {
         let (_, first) = renderer.preview_frame(&engine, &scene, 1)?;
         let light_ms = first.light_time.as_secs_f64() * 1000.0;
         let eye = scene.camera.eye;
-        let mut per_divisor = Vec::new();
-        for divisor in voxlight_engine::preview::DIVISORS {
-            let mut times = Vec::new();
-            for frame in 0..frames {
-                let angle = (frame as f32 * 5.0).to_radians();
+        let medians = orbit_previews(
+            &engine,
+            &mut renderer,
+            &mut scene,
+            frames,
+            |scene, angle| {
                 let (sin, cos) = angle.sin_cos();
                 scene.camera.eye = [
                     eye[0] * cos - eye[1] * sin,
                     eye[0] * sin + eye[1] * cos,
                     eye[2],
                 ];
-                let (_, report) = renderer.preview_frame(&engine, &scene, divisor)?;
-                anyhow::ensure!(
-                    !report.light_rebuilt,
-                    "a camera move rebuilt the light volume"
-                );
-                times.push(report.view_time.as_secs_f64() * 1000.0);
-            }
-            let ms = median(times);
+            },
+        )?;
+        let mut per_divisor = Vec::new();
+        for (divisor, ms) in medians {
             eprintln!(
                 "preview {size}x{size} at 1/{divisor}: {ms:.1} ms/frame (raymarch iteration {raymarch_ms:.0} ms, light volume {light_ms:.0} ms)"
             );

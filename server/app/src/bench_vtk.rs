@@ -219,21 +219,18 @@ pub fn preview_vtk(options: &PreviewVtkBench) -> anyhow::Result<serde_json::Valu
             // Builds the light volume (pipelines exist already).
             let (_, first) = renderer.preview_frame(&engine, &scene, 1)?;
             let light_ms = first.light_time.as_secs_f64() * 1000.0;
-            let mut per_divisor = Vec::new();
-            for divisor in voxlight_engine::preview::DIVISORS {
-                let mut times = Vec::new();
-                for frame in 0..frames {
-                    let angle = (frame as f32 * 5.0).to_radians();
+            let medians = crate::bench::orbit_previews(
+                &engine,
+                &mut renderer,
+                &mut scene,
+                frames,
+                |scene, angle| {
                     scene.camera.eye = rotate(camera.eye, axis, angle);
                     scene.camera.up = rotate(camera.up, axis, angle);
-                    let (_, report) = renderer.preview_frame(&engine, &scene, divisor)?;
-                    anyhow::ensure!(
-                        !report.light_rebuilt,
-                        "a camera move rebuilt the light volume"
-                    );
-                    times.push(report.view_time.as_secs_f64() * 1000.0);
-                }
-                let ms = crate::bench::median(times);
+                },
+            )?;
+            let mut per_divisor = Vec::new();
+            for (divisor, ms) in medians {
                 eprintln!(
                     "preview-vtk {dataset} {size}x{size} at 1/{divisor}: {ms:.1} ms/frame (light volume {light_ms:.0} ms)"
                 );
