@@ -108,7 +108,7 @@ impl Preview {
         let lights = gpu.buffer(
             "preview lights",
             (MAX_LIGHTS * size_of::<GpuLight>()) as u64,
-            storage,
+            wgpu::BufferUsages::UNIFORM,
         );
         let cell_max_opacity = gpu.buffer(
             "preview cell max opacity",

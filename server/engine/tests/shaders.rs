@@ -183,3 +183,23 @@ fn rust_and_wgsl_layouts_agree() {
         );
     }
 }
+
+/// The preview binds its lights as a uniform array (preview_common.wgsl) that must hold as many
+/// as the protocol allows.
+#[test]
+fn preview_lights_hold_max_lights() {
+    let module = parse_and_validate("preview_light", &shaders::preview(shaders::PREVIEW_LIGHT));
+    let (_, lights) = module
+        .global_variables
+        .iter()
+        .find(|(_, v)| v.name.as_deref() == Some("lights"))
+        .expect("a lights binding");
+    assert_eq!(lights.space, naga::AddressSpace::Uniform);
+    let naga::TypeInner::Array { size, .. } = module.types[lights.ty].inner else {
+        panic!("lights is not an array");
+    };
+    let naga::ArraySize::Constant(count) = size else {
+        panic!("lights has no fixed size");
+    };
+    assert_eq!(count.get() as usize, voxlight_protocol::MAX_LIGHTS);
+}

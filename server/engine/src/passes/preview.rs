@@ -51,7 +51,7 @@ impl PreviewPasses {
                     uniform_entry(0),
                     volume_entry(1),
                     storage_entry(2, true),
-                    storage_entry(3, true),
+                    uniform_entry(3),
                     storage_entry(4, true),
                     uniform_entry(5),
                     storage_entry(6, false),
