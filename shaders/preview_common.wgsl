@@ -6,9 +6,6 @@
 // ENV_DIRECTIONS directions to the environment (channel light_count). It depends on the
 // opacity, the density scale and the lights only, never on the camera or the colours.
 
-// Lights the preview binds: protocol::MAX_LIGHTS.
-const PREVIEW_MAX_LIGHTS: u32 = 16u;
-
 struct PreviewParams {
     light_dims: vec3<u32>,
     // light_count + ENV_CHANNELS.
@@ -23,10 +20,9 @@ struct PreviewParams {
 @group(0) @binding(0) var<uniform> scene: SceneUniforms;
 @group(0) @binding(1) var volume_tex: texture_3d<f32>;
 @group(0) @binding(2) var<storage, read> tf_lut: array<vec4<f32>>;
-// A uniform buffer, not storage: lavapipe (llvmpipe) treats a value read from a storage buffer
-// as varying per invocation even at a uniform index, and the light volume's march along such a
-// direction ran ~25× slower (the chest CT's light volume took ~90 s, ~3 s from a uniform).
-@group(0) @binding(3) var<uniform> lights: array<GpuLight, PREVIEW_MAX_LIGHTS>;
+// Uniform, not storage (scene.wgsl, MAX_LIGHTS): from storage the chest CT's light volume took
+// ~90 s on lavapipe, from a uniform ~3 s.
+@group(0) @binding(3) var<uniform> lights: array<GpuLight, MAX_LIGHTS>;
 @group(0) @binding(4) var<storage, read> cell_max_opacity: array<f32>;
 @group(0) @binding(5) var<uniform> params: PreviewParams;
 @group(0) @binding(6) var<storage, read_write> light_volume: array<f32>;

@@ -30,6 +30,11 @@ const LIGHT_POINT: u32 = 1u;
 
 // Directional: `vector` is the direction the light travels, `color` its irradiance.
 // Point: `vector` is its position, `color` its radiant intensity.
+// Lights a scene may hold: protocol::MAX_LIGHTS. Passes bind them as a uniform array: lavapipe
+// (llvmpipe) treats a value read from a storage buffer as varying per invocation even at a
+// uniform index, and a march along a direction read that way ran ~30× slower.
+const MAX_LIGHTS: u32 = 16u;
+
 struct GpuLight {
     vector: vec3<f32>,
     kind: u32,

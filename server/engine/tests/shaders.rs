@@ -184,22 +184,26 @@ fn rust_and_wgsl_layouts_agree() {
     }
 }
 
-/// The preview binds its lights as a uniform array (preview_common.wgsl) that must hold as many
+/// Every pass binds the lights as a uniform array (scene.wgsl's MAX_LIGHTS) that holds as many
 /// as the protocol allows.
 #[test]
-fn preview_lights_hold_max_lights() {
-    let module = parse_and_validate("preview_light", &shaders::preview(shaders::PREVIEW_LIGHT));
-    let (_, lights) = module
-        .global_variables
-        .iter()
-        .find(|(_, v)| v.name.as_deref() == Some("lights"))
-        .expect("a lights binding");
-    assert_eq!(lights.space, naga::AddressSpace::Uniform);
-    let naga::TypeInner::Array { size, .. } = module.types[lights.ty].inner else {
-        panic!("lights is not an array");
-    };
-    let naga::ArraySize::Constant(count) = size else {
-        panic!("lights has no fixed size");
-    };
-    assert_eq!(count.get() as usize, voxlight_protocol::MAX_LIGHTS);
+fn lights_are_a_uniform_array_of_max_lights() {
+    for (name, source) in shaders::all() {
+        let module = parse_and_validate(name, &source);
+        let Some((_, lights)) = module
+            .global_variables
+            .iter()
+            .find(|(_, v)| v.name.as_deref() == Some("lights"))
+        else {
+            continue;
+        };
+        assert_eq!(lights.space, naga::AddressSpace::Uniform, "{name}");
+        let naga::TypeInner::Array { size, .. } = module.types[lights.ty].inner else {
+            panic!("{name}: lights is not an array");
+        };
+        let naga::ArraySize::Constant(count) = size else {
+            panic!("{name}: lights has no fixed size");
+        };
+        assert_eq!(count.get() as usize, voxlight_protocol::MAX_LIGHTS, "{name}");
+    }
 }

@@ -33,7 +33,7 @@ impl EstimatorPass {
                 uniform_entry(0),
                 volume_entry(1),
                 storage_entry(2, true),
-                storage_entry(3, true),
+                uniform_entry(3),
                 storage_entry(4, false),
                 storage_entry(5, true),
             ],

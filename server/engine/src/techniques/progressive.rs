@@ -83,7 +83,7 @@ impl Progressive {
         let lights = buffer(
             "estimator lights",
             (MAX_LIGHTS * size_of::<GpuLight>()) as u64,
-            wgpu::BufferUsages::STORAGE,
+            wgpu::BufferUsages::UNIFORM,
         );
         let (width, height) = (scene.viewport.width, scene.viewport.height);
         let accum = buffer(
