@@ -6,6 +6,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use serde_json::json;
+use voxlight_engine::preview::LightDetail;
 use voxlight_engine::{Engine, Scene};
 use voxlight_protocol::{Camera, TfPoint, TransferFunction, Viewport, default_lights};
 
@@ -580,7 +581,7 @@ pub(crate) fn orbit_previews(
         let mut times = Vec::new();
         for frame in 0..frames {
             turn(scene, (frame as f32 * 5.0).to_radians());
-            let (_, report) = renderer.preview_frame(engine, scene, divisor)?;
+            let (_, report) = renderer.preview_frame(engine, scene, divisor, LightDetail::Full)?;
             anyhow::ensure!(
                 !report.light_rebuilt,
                 "a camera move rebuilt the light volume"
@@ -618,7 +619,7 @@ pub fn preview(options: &RaymarchBench) -> anyhow::Result<serde_json::Value> {
         renderer.step(&engine, &scene, Duration::ZERO)?;
         let raymarch_ms = started.elapsed().as_secs_f64() * 1000.0;
         // The first preview builds the light volume (and compiles nothing new: pipelines exist).
-        let (_, first) = renderer.preview_frame(&engine, &scene, 1)?;
+        let (_, first) = renderer.preview_frame(&engine, &scene, 1, LightDetail::Full)?;
         let light_ms = first.light_time.as_secs_f64() * 1000.0;
         let eye = scene.camera.eye;
         let medians = orbit_previews(

@@ -13,6 +13,7 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use serde_json::json;
+use voxlight_engine::preview::LightDetail;
 use voxlight_engine::{Engine, Scene};
 use voxlight_protocol::{Camera, TfPoint, TransferFunction, Viewport, default_lights};
 use voxlight_volumes::Volume;
@@ -217,7 +218,7 @@ pub fn preview_vtk(options: &PreviewVtkBench) -> anyhow::Result<serde_json::Valu
             let mut renderer =
                 engine.create_renderer("raymarch", Arc::clone(&gpu_volume), &scene)?;
             // Builds the light volume (pipelines exist already).
-            let (_, first) = renderer.preview_frame(&engine, &scene, 1)?;
+            let (_, first) = renderer.preview_frame(&engine, &scene, 1, LightDetail::Full)?;
             let light_ms = first.light_time.as_secs_f64() * 1000.0;
             let medians = crate::bench::orbit_previews(
                 &engine,

@@ -21,6 +21,7 @@ use std::sync::{Arc, Weak};
 use std::time::{Duration, Instant};
 
 use tokio::sync::{broadcast, mpsc, oneshot, watch};
+use voxlight_engine::preview::LightDetail;
 use voxlight_engine::{
     Change, Engine, EngineError, Frame, GpuVolume, Renderer, Scene, TechniqueStats, session_bytes,
 };
@@ -581,10 +582,17 @@ impl RenderThread {
             session.shown_preview.filter(|&d| d > 1).map(|_| 1)
         };
         session.fresh_edit = false;
+        // While edits stream in, a stale light volume is rebuilt coarse (a TF drag rebuilds it
+        // every edit); the preview at rest rebuilds it in full.
+        let light_detail = if session.moving(&interaction, started) {
+            LightDetail::Interactive
+        } else {
+            LightDetail::Full
+        };
         let result = match preview_divisor {
             Some(divisor) => session
                 .renderer
-                .preview_frame(&engine, &session.scene, divisor)
+                .preview_frame(&engine, &session.scene, divisor, light_detail)
                 .map(|(frame, report)| {
                     if session.moving(&interaction, started) {
                         session.divisor =

@@ -19,6 +19,17 @@ use crate::scene_gpu::{GpuLight, SceneUniforms, gpu_lights};
 use crate::tf::{TF_LUT_SIZE, bake};
 use crate::{Engine, EngineError, GpuVolume, Scene};
 
+/// How fine a light volume the preview builds when it must rebuild it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LightDetail {
+    /// The full grid (`light_dims`).
+    Full,
+    /// Half the grid points per axis, about 16× cheaper to build (an eighth of the points, half
+    /// the steps each): for edits that stream in, so that a TF drag is not held up by the
+    /// light volume. A full one of the same inputs is reused rather than coarsened.
+    Interactive,
+}
+
 /// Resolution divisors the preview may use, finest first.
 pub const DIVISORS: [u32; 4] = [1, 2, 4, 8];
 
@@ -57,7 +68,10 @@ pub struct Preview {
     rgba: wgpu::Buffer,
     bind_group: wgpu::BindGroup,
     tone_bind_group: wgpu::BindGroup,
+    /// Grid points of the full light volume (its buffer's size).
     light_dims: [u32; 3],
+    /// Grid points of the light volume as built (`light_dims`, or half of it per axis).
+    built_dims: [u32; 3],
     /// Channels the light volume has room for (lights + the environment).
     light_channels: u32,
     /// Viewport size the image buffers were made for.
@@ -169,6 +183,7 @@ impl Preview {
             bind_group,
             tone_bind_group,
             light_dims,
+            built_dims: light_dims,
             light_channels,
             width,
             height,
@@ -201,12 +216,19 @@ impl Preview {
         self.light_rebuilds
     }
 
-    /// Renders one preview of `scene` at `divisor` and reads it back tone-mapped.
+    /// Grid points of the light volume last built.
+    pub fn built_light_dims(&self) -> [u32; 3] {
+        self.built_dims
+    }
+
+    /// Renders one preview of `scene` at `divisor` and reads it back tone-mapped; a stale light
+    /// volume is rebuilt at `detail`.
     pub fn render(
         &mut self,
         engine: &Engine,
         scene: &Scene,
         divisor: u32,
+        detail: LightDetail,
     ) -> Result<(Frame, PreviewReport), EngineError> {
         let (lights, env) = gpu_lights(&scene.lights);
         if (scene.viewport.width, scene.viewport.height) != (self.width, self.height)
@@ -222,16 +244,6 @@ impl Preview {
         uniforms.height = height;
         gpu.queue
             .write_buffer(&self.scene_buf, 0, bytemuck::bytes_of(&uniforms));
-        let params = PreviewParams {
-            light_dims: self.light_dims,
-            channels: lights.len() as u32 + ENV_CHANNELS,
-            width,
-            height,
-            pad0: 0,
-            pad1: 0,
-        };
-        gpu.queue
-            .write_buffer(&self.params_buf, 0, bytemuck::bytes_of(&params));
         let lut = bake(&scene.tf);
         if lut != self.lut {
             gpu.queue
@@ -251,8 +263,26 @@ impl Preview {
             lights,
             env,
         };
+        let channels = inputs.lights.len() as u32 + ENV_CHANNELS;
         let mut light_time = Duration::ZERO;
-        let light_rebuilt = self.built_from.as_ref() != Some(&inputs);
+        let light_rebuilt = self.built_from.as_ref() != Some(&inputs)
+            || (detail == LightDetail::Full && self.built_dims != self.light_dims);
+        if light_rebuilt {
+            self.built_dims = match detail {
+                LightDetail::Full => self.light_dims,
+                LightDetail::Interactive => self.light_dims.map(|d| d.div_ceil(2).max(2)),
+            };
+        }
+        let params = PreviewParams {
+            light_dims: self.built_dims,
+            channels,
+            width,
+            height,
+            pad0: 0,
+            pad1: 0,
+        };
+        gpu.queue
+            .write_buffer(&self.params_buf, 0, bytemuck::bytes_of(&params));
         if light_rebuilt {
             let started = Instant::now();
             let mut encoder = gpu
@@ -262,7 +292,7 @@ impl Preview {
                 });
             engine
                 .preview
-                .encode_light(&mut encoder, &self.bind_group, self.light_dims, None);
+                .encode_light(&mut encoder, &self.bind_group, self.built_dims, None);
             gpu.queue.submit([encoder.finish()]);
             gpu.wait_idle()?;
             light_time = started.elapsed();

@@ -7,7 +7,7 @@ use std::time::Duration;
 use voxlight_protocol::TransferFunction;
 
 use crate::passes::tonemap::ToneParams;
-use crate::preview::{Preview, PreviewReport};
+use crate::preview::{LightDetail, Preview, PreviewReport};
 use crate::technique::{StepReport, Technique, TechniqueStats};
 use crate::techniques::photon::Photon;
 use crate::techniques::progressive::{Estimator, Progressive, accum_bytes};
@@ -279,11 +279,12 @@ impl Renderer {
         engine: &Engine,
         scene: &Scene,
         divisor: u32,
+        detail: LightDetail,
     ) -> Result<(Frame, PreviewReport), EngineError> {
         let preview = self
             .preview
             .get_or_insert_with(|| Preview::new(engine, self.volume.clone(), scene));
-        preview.render(engine, scene, divisor)
+        preview.render(engine, scene, divisor, detail)
     }
 
     /// The preview, once one was rendered.

@@ -7,6 +7,7 @@ mod common;
 use std::sync::Arc;
 
 use common::*;
+use voxlight_engine::preview::LightDetail;
 use voxlight_engine::{GpuVolume, Scene};
 use voxlight_protocol::{Camera, Light};
 
@@ -36,7 +37,7 @@ fn preview_hdr(volume: Arc<GpuVolume>, scene: &Scene, divisor: u32) -> Vec<[f32;
         .create_renderer("raymarch", volume, scene)
         .expect("renderer");
     let (frame, _) = renderer
-        .preview_frame(engine, scene, divisor)
+        .preview_frame(engine, scene, divisor, LightDetail::Full)
         .expect("preview");
     assert!(frame.preview);
     let preview = renderer.preview().expect("a preview was made");
@@ -121,4 +122,79 @@ fn dump(path: &str, hdr: &[[f32; 3]], width: u32) {
         bytes.extend(p.iter().map(|&c| srgb_byte(c)));
     }
     std::fs::write(path, bytes).expect("dump");
+}
+
+/// Camera moves and colour-only TF edits reuse the light volume; opacity edits rebuild it. While
+/// edits stream in (`LightDetail::Interactive`) it is rebuilt at half the grid points per axis,
+/// close to the full one, and the next full-detail preview rebuilds it in full (an interactive
+/// one after that reuses the full one). The divisor sets the image size.
+#[test]
+fn light_volume_is_rebuilt_only_when_it_must() {
+    let engine = engine();
+    let (volume, mut scene) = sphere_scene(64, 1);
+    let mut renderer = engine
+        .create_renderer("raymarch", volume, &scene)
+        .expect("renderer");
+    let mut render = |scene: &Scene, divisor: u32, detail: LightDetail| {
+        let (frame, report) = renderer
+            .preview_frame(engine, scene, divisor, detail)
+            .expect("preview");
+        let preview = renderer.preview().expect("a preview");
+        let hdr = preview.read_hdr(engine, divisor).expect("hdr");
+        (
+            frame,
+            report.light_rebuilt,
+            preview.built_light_dims(),
+            preview.light_rebuilds(),
+            hdr,
+        )
+    };
+    let (frame, rebuilt, full_dims, rebuilds, full) = render(&scene, 1, LightDetail::Full);
+    assert!(rebuilt && rebuilds == 1);
+    assert_eq!((frame.width, frame.height), (64, 64));
+
+    scene.camera.eye = [0.9, -2.2, 0.4];
+    let (frame, rebuilt, ..) = render(&scene, 4, LightDetail::Interactive);
+    assert!(!rebuilt, "a camera move reuses the light volume");
+    assert_eq!((frame.width, frame.height), (16, 16));
+    for point in &mut scene.tf.points {
+        point.color = [0.3, 0.6, 0.9];
+    }
+    let (_, rebuilt, dims, ..) = render(&scene, 2, LightDetail::Interactive);
+    assert!(!rebuilt, "a colour edit reuses the light volume");
+    assert_eq!(
+        dims, full_dims,
+        "an interactive preview keeps a full light volume"
+    );
+
+    // Back to the first scene's camera and colours, with the opacities halved and back.
+    let (_, first_scene) = sphere_scene(64, 1);
+    scene = first_scene.clone();
+    for point in &mut scene.tf.points {
+        point.opacity *= 0.5;
+    }
+    let (_, rebuilt, dims, ..) = render(&scene, 1, LightDetail::Interactive);
+    assert!(rebuilt, "an opacity edit rebuilds the light volume");
+    assert_eq!(
+        dims,
+        full_dims.map(|d| d.div_ceil(2)),
+        "coarse while interacting"
+    );
+    let (_, rebuilt, dims, _, coarse) = render(&first_scene, 1, LightDetail::Interactive);
+    assert!(rebuilt && dims != full_dims);
+    let (coarse_mean, coarse_rms) = compare(&coarse, &full);
+    eprintln!(
+        "coarse light volume vs full: mean ratio {coarse_mean:.4}, relative RMS {coarse_rms:.4}"
+    );
+    assert!(
+        (coarse_mean - 1.0).abs() < 0.02,
+        "coarse mean ratio {coarse_mean}"
+    );
+    let (_, rebuilt, dims, rebuilds, again) = render(&first_scene, 1, LightDetail::Full);
+    assert!(
+        rebuilt && dims == full_dims,
+        "at rest the light volume is rebuilt in full"
+    );
+    assert_eq!(rebuilds, 4);
+    assert_eq!(again, full, "the same inputs give the same picture");
 }

@@ -204,6 +204,10 @@ fn lights_are_a_uniform_array_of_max_lights() {
         let naga::ArraySize::Constant(count) = size else {
             panic!("{name}: lights has no fixed size");
         };
-        assert_eq!(count.get() as usize, voxlight_protocol::MAX_LIGHTS, "{name}");
+        assert_eq!(
+            count.get() as usize,
+            voxlight_protocol::MAX_LIGHTS,
+            "{name}"
+        );
     }
 }
