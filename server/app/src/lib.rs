@@ -4,6 +4,7 @@
 pub mod adapt;
 pub mod auth;
 pub mod bench;
+pub mod bench_interactive;
 pub mod bench_irradiance;
 pub mod bench_manylight;
 pub mod bench_vtk;

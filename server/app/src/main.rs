@@ -9,7 +9,8 @@ use clap::{Parser, Subcommand};
 use tokio_util::sync::CancellationToken;
 use voxlight_engine::techniques::irradiance::{DEFAULT_BOUNCES, Historygrams};
 use voxlight_server::{
-    Server, ServerConfig, bench, bench_irradiance, bench_manylight, loadgen, offline,
+    Server, ServerConfig, bench, bench_interactive, bench_irradiance, bench_manylight, loadgen,
+    offline,
 };
 
 #[derive(Parser)]
@@ -23,6 +24,8 @@ struct Cli {
     command: Command,
 }
 
+// Parsed once per run: the size of its largest variant (`bench`'s options) does not matter.
+#[allow(clippy::large_enum_variant)]
 #[derive(Subcommand)]
 enum Command {
     /// Serve the web viewer, /ws, /healthz and /api/datasets.
@@ -118,7 +121,8 @@ enum Command {
         #[arg(long)]
         pfm: Option<PathBuf>,
     },
-    /// Run a benchmark (`raymarch`, `preview`, `preview-vtk`, `tf-edit`, `manylight`, `convergence`).
+    /// Run a benchmark (`raymarch`, `preview`, `preview-vtk`, `interactive`, `tf-edit`,
+    /// `manylight`, `convergence`).
     Bench {
         name: String,
         /// Technique measured by `tf-edit`.
@@ -228,6 +232,31 @@ enum Command {
         /// default when absent).
         #[arg(long)]
         view_picks: Option<u32>,
+        /// `interactive`: the running server's WebSocket endpoint; without it the bench starts
+        /// one in this process on loopback (interaction mode on, `serve`'s defaults).
+        #[arg(long)]
+        url: Option<String>,
+        /// `interactive`: techniques to drag with (default raymarch,photon,manylight,irradiance).
+        #[arg(long, value_delimiter = ',')]
+        techniques: Option<Vec<String>>,
+        /// `interactive`: viewports, `WxH` or one edge.
+        #[arg(long, value_delimiter = ',', default_value = "512x512,1024x768")]
+        viewports: Vec<String>,
+        /// `interactive`: the dataset (the server's default when absent).
+        #[arg(long)]
+        dataset: Option<String>,
+        /// `interactive`: edits in the scripted drag (every 4th a TF edit, the rest 3° turns).
+        #[arg(long, default_value_t = 24)]
+        edits: u32,
+        /// `interactive`: edits per second while dragging.
+        #[arg(long, default_value_t = 8.0)]
+        edit_rate: f64,
+        /// `interactive`: progressive iterations of the still (sent as `quality`).
+        #[arg(long, default_value_t = 4)]
+        still_iterations: u32,
+        /// `interactive`: longest wait (s) for the still after the drag.
+        #[arg(long, default_value_t = 600.0)]
+        still_timeout_s: f64,
     },
 }
 
@@ -376,6 +405,14 @@ fn run() -> anyhow::Result<()> {
             validate_hits,
             cached_light,
             view_picks,
+            url,
+            techniques,
+            viewports,
+            dataset,
+            edits,
+            edit_rate,
+            still_iterations,
+            still_timeout_s,
         } => {
             use voxlight_engine::techniques::irradiance::{CachedLight, ViewEvent};
             let cached_light = match cached_light.as_str() {
@@ -499,8 +536,31 @@ fn run() -> anyhow::Result<()> {
                         },
                     )?
                 }
+                "interactive" => {
+                    let viewports = viewports
+                        .iter()
+                        .map(|v| bench_interactive::parse_viewport(v))
+                        .collect::<anyhow::Result<Vec<_>>>()?;
+                    let techniques = techniques.unwrap_or_else(|| {
+                        ["raymarch", "photon", "manylight", "irradiance"]
+                            .map(str::to_owned)
+                            .to_vec()
+                    });
+                    let bench = bench_interactive::InteractiveBench {
+                        url: url.unwrap_or_default(),
+                        techniques,
+                        viewports,
+                        dataset,
+                        edits,
+                        edit_rate,
+                        still_iterations,
+                        still_timeout: Duration::try_from_secs_f64(still_timeout_s)
+                            .context("--still-timeout-s must be a positive number of seconds")?,
+                    };
+                    serde_json::to_value(interactive(bench, data.clone())?)?
+                }
                 other => anyhow::bail!(
-                    "unknown benchmark `{other}`; available: raymarch, preview, preview-vtk, tf-edit, manylight, convergence"
+                    "unknown benchmark `{other}`; available: raymarch, preview, preview-vtk, interactive, tf-edit, manylight, convergence"
                 ),
             };
             if json {
@@ -511,6 +571,38 @@ fn run() -> anyhow::Result<()> {
             Ok(())
         }
     }
+}
+
+/// `bench interactive` against `bench.url`, or against a server started here on loopback.
+fn interactive(
+    mut bench: bench_interactive::InteractiveBench,
+    data: Option<PathBuf>,
+) -> anyhow::Result<bench_interactive::InteractiveReport> {
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .thread_name("voxlight-io")
+        .build()?;
+    runtime.block_on(async move {
+        if !bench.url.is_empty() {
+            return bench_interactive::run(&bench).await;
+        }
+        let engine = voxlight_engine::Engine::new()?;
+        let shutdown = CancellationToken::new();
+        let config = ServerConfig {
+            data_dir: data,
+            preload: false,
+            interaction: Some(voxlight_server::render_service::Interaction::default()),
+            ..ServerConfig::default()
+        };
+        let server = Server::start(&config, engine, shutdown.clone())?;
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
+        bench.url = format!("ws://{}/ws", listener.local_addr()?);
+        let serving = tokio::spawn(server.run(listener));
+        let report = bench_interactive::run(&bench).await;
+        shutdown.cancel();
+        serving.await??;
+        report
+    })
 }
 
 fn serve(listen: SocketAddr, config: ServerConfig) -> anyhow::Result<()> {
