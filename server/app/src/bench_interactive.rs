@@ -70,9 +70,11 @@ pub struct InteractiveRun {
     /// did not arrive within the timeout.
     pub time_to_still_ms: Option<f64>,
     pub still_iterations: u32,
-    /// Mean linear luminance of the still over that of the last preview of the same scene,
-    /// minus one; None without both.
-    pub still_vs_preview_brightness: Option<f64>,
+    /// Mean brightness of the still over that of the last preview of the same scene, minus
+    /// one, as encoded luma (Y' of the sRGB values, which JPEG's DC terms keep) and as linear
+    /// luminance (which JPEG's ringing at edges raises, by convexity); None without both.
+    pub still_vs_preview_luma: Option<f64>,
+    pub still_vs_preview_linear: Option<f64>,
     pub errors: Vec<String>,
 }
 
@@ -158,8 +160,16 @@ fn orbit(camera: &Camera, degrees: f32) -> Camera {
     Camera { eye, ..*camera }
 }
 
-/// Mean linear luminance of an encoded frame (sRGB JPEG or PNG).
-pub fn mean_luminance(format: FrameFormat, image: &[u8]) -> anyhow::Result<f64> {
+/// Mean brightness of an encoded frame (sRGB JPEG or PNG).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Brightness {
+    /// Y' = 0.2126 R' + 0.7152 G' + 0.0722 B' of the encoded values, in [0, 1].
+    pub luma: f64,
+    /// Rec. 709 luminance of the linearised values.
+    pub linear: f64,
+}
+
+pub fn mean_brightness(format: FrameFormat, image: &[u8]) -> anyhow::Result<Brightness> {
     let (pixels, channels) = match format {
         FrameFormat::Jpeg => {
             let mut decoder = jpeg_decoder::Decoder::new(image);
@@ -198,12 +208,17 @@ pub fn mean_luminance(format: FrameFormat, image: &[u8]) -> anyhow::Result<f64> 
             ((c + 0.055) / 1.055).powf(2.4)
         }
     };
-    let count = pixels.len() / channels;
-    let sum: f64 = pixels
-        .chunks_exact(channels)
-        .map(|p| 0.2126 * linear(p[0]) + 0.7152 * linear(p[1]) + 0.0722 * linear(p[2]))
-        .sum();
-    Ok(sum / count as f64)
+    let count = (pixels.len() / channels) as f64;
+    let (mut luma, mut lin) = (0.0, 0.0);
+    for p in pixels.chunks_exact(channels) {
+        luma += (0.2126 * f64::from(p[0]) + 0.7152 * f64::from(p[1]) + 0.0722 * f64::from(p[2]))
+            / 255.0;
+        lin += 0.2126 * linear(p[0]) + 0.7152 * linear(p[1]) + 0.0722 * linear(p[2]);
+    }
+    Ok(Brightness {
+        luma: luma / count,
+        linear: lin / count,
+    })
 }
 
 type Socket =
@@ -430,15 +445,19 @@ async fn run_one(
             .last()
             .map(|last| at.duration_since(*last).as_secs_f64() * 1e3)
     });
-    let still_vs_preview_brightness = match (&still, &last_preview) {
+    let (still_vs_preview_luma, still_vs_preview_linear) = match (&still, &last_preview) {
         (Some((_, meta, image)), Some((version, format, preview)))
             if *version == meta.scene_version =>
         {
-            let still = mean_luminance(meta.format, image)?;
-            let preview = mean_luminance(*format, preview)?;
-            (preview > 0.0).then(|| still / preview - 1.0)
+            let still = mean_brightness(meta.format, image)?;
+            let preview = mean_brightness(*format, preview)?;
+            let ratio = |a: f64, b: f64| (b > 0.0).then(|| a / b - 1.0);
+            (
+                ratio(still.luma, preview.luma),
+                ratio(still.linear, preview.linear),
+            )
         }
-        _ => None,
+        _ => (None, None),
     };
     let run = InteractiveRun {
         technique: technique.to_owned(),
@@ -459,7 +478,8 @@ async fn run_one(
         ),
         time_to_still_ms,
         still_iterations: bench.still_iterations,
-        still_vs_preview_brightness,
+        still_vs_preview_luma,
+        still_vs_preview_linear,
         errors,
     };
     Ok((run, adapter, dataset))
@@ -508,10 +528,11 @@ mod tests {
         let grey = vec![188u8; 16 * 16 * 4];
         let png = crate::encode::png(&grey, 16, 16).unwrap();
         // sRGB 188 is linear 0.5.
-        let l = mean_luminance(FrameFormat::Png, &png).unwrap();
-        assert!((l - 0.5).abs() < 0.01, "{l}");
+        let b = mean_brightness(FrameFormat::Png, &png).unwrap();
+        assert!((b.linear - 0.5).abs() < 0.01, "{b:?}");
+        assert!((b.luma - 188.0 / 255.0).abs() < 1e-9, "{b:?}");
         let jpeg = crate::encode::jpeg(&grey, 16, 16, 95).unwrap();
-        let l = mean_luminance(FrameFormat::Jpeg, &jpeg).unwrap();
-        assert!((l - 0.5).abs() < 0.02, "{l}");
+        let b = mean_brightness(FrameFormat::Jpeg, &jpeg).unwrap();
+        assert!((b.linear - 0.5).abs() < 0.02, "{b:?}");
     }
 }
