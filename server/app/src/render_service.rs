@@ -456,7 +456,12 @@ impl RenderThread {
                                 dirty: true,
                                 failed: false,
                                 technique_fresh: true,
-                                divisor: 1,
+                                // The first preview at the coarsest divisor: its time predicts
+                                // the finer ones (next_divisor refines), where one at full
+                                // resolution would hold the first edit for the slowest preview
+                                // (3.3 s at 512² on lavapipe).
+                                divisor: voxlight_engine::preview::DIVISORS
+                                    [voxlight_engine::preview::DIVISORS.len() - 1],
                                 shown_preview: None,
                             },
                         );
