@@ -221,6 +221,11 @@ pub fn mean_brightness(format: FrameFormat, image: &[u8]) -> anyhow::Result<Brig
     })
 }
 
+async fn ack(socket: &mut Socket, seq: u64) -> anyhow::Result<()> {
+    let ack = format!(r#"{{"type":"ack","seq":{seq}}}"#);
+    socket.send(Message::Text(ack.into())).await.context("ack")
+}
+
 type Socket =
     tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
 
@@ -239,13 +244,12 @@ enum Received {
     Server(ServerMessage),
 }
 
+/// The next message; cancel-safe (it only reads), so frames are acknowledged by the caller.
 async fn receive(socket: &mut Socket) -> anyhow::Result<Received> {
     loop {
         match socket.next().await.context("connection closed")?? {
             Message::Binary(bytes) => {
                 let (meta, image) = split_frame(&bytes).context("malformed frame")?;
-                let ack = format!(r#"{{"type":"ack","seq":{}}}"#, meta.seq);
-                socket.send(Message::Text(ack.into())).await?;
                 return Ok(Received::Frame(meta, image.to_vec()));
             }
             Message::Text(text) => {
@@ -346,7 +350,7 @@ async fn run_one(
     tokio::time::timeout(START_TIMEOUT, async {
         loop {
             match receive(&mut socket).await? {
-                Received::Frame(..) => return Ok(()),
+                Received::Frame(meta, _) => return ack(&mut socket, meta.seq).await,
                 Received::Server(ServerMessage::Error { message, .. }) => bail!("{message}"),
                 _ => {}
             }
@@ -402,6 +406,7 @@ async fn run_one(
                 Received::Server(_) => {}
                 Received::Frame(meta, image) => {
                     let now = Instant::now();
+                    ack(&mut socket, meta.seq).await?;
                     // Frames from the first edit to the one that shows the last are the drag's.
                     if !sent_at.is_empty() && shown < bench.edits as usize {
                         drag_frames.push((now, meta.clone()));
