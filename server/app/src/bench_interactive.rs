@@ -261,6 +261,29 @@ async fn receive(socket: &mut Socket) -> anyhow::Result<Received> {
     }
 }
 
+/// The first message `pick` accepts within `START_TIMEOUT`; an `error` from the server fails.
+async fn wait_for<T>(
+    socket: &mut Socket,
+    what: &str,
+    mut pick: impl FnMut(Received) -> Option<T>,
+) -> anyhow::Result<T> {
+    let wait = async {
+        loop {
+            match receive(socket).await? {
+                Received::Server(ServerMessage::Error { message, .. }) => bail!("{message}"),
+                received => {
+                    if let Some(found) = pick(received) {
+                        return Ok(found);
+                    }
+                }
+            }
+        }
+    };
+    tokio::time::timeout(START_TIMEOUT, wait)
+        .await
+        .with_context(|| format!("no {what}"))?
+}
+
 /// Runs every technique at every viewport in turn, one session each.
 pub async fn run(bench: &InteractiveBench) -> anyhow::Result<InteractiveReport> {
     validate(bench)?;
@@ -322,23 +345,18 @@ async fn run_one(
     )
     .await?;
     // The welcome, then the first frame.
-    let (own_id, state, adapter, dataset) = tokio::time::timeout(START_TIMEOUT, async {
-        loop {
-            match receive(&mut socket).await? {
-                Received::Server(ServerMessage::Welcome {
-                    viewer,
-                    state,
-                    adapter,
-                    dataset,
-                    ..
-                }) => return Ok((viewer.id, state, adapter, dataset.name)),
-                Received::Server(ServerMessage::Error { message, .. }) => bail!("{message}"),
-                _ => {}
-            }
-        }
-    })
-    .await
-    .context("no welcome")??;
+    let (own_id, state, adapter, dataset) =
+        wait_for(&mut socket, "welcome", |received| match received {
+            Received::Server(ServerMessage::Welcome {
+                viewer,
+                state,
+                adapter,
+                dataset,
+                ..
+            }) => Some((viewer.id, state, adapter, dataset.name)),
+            _ => None,
+        })
+        .await?;
     send(
         &mut socket,
         &ClientMessage::Quality {
@@ -347,17 +365,12 @@ async fn run_one(
         },
     )
     .await?;
-    tokio::time::timeout(START_TIMEOUT, async {
-        loop {
-            match receive(&mut socket).await? {
-                Received::Frame(meta, _) => return ack(&mut socket, meta.seq).await,
-                Received::Server(ServerMessage::Error { message, .. }) => bail!("{message}"),
-                _ => {}
-            }
-        }
+    let first = wait_for(&mut socket, "first frame", |received| match received {
+        Received::Frame(meta, _) => Some(meta.seq),
+        _ => None,
     })
-    .await
-    .context("no first frame")??;
+    .await?;
+    ack(&mut socket, first).await?;
     let first_frame_ms = started.elapsed().as_secs_f64() * 1e3;
 
     // The drag. Edits are sent on a timer; every frame is acknowledged as it arrives.
