@@ -511,7 +511,18 @@ async fn metrics_count_sessions_frames_errors_and_latency() {
         .await
         .unwrap();
 
-    let text = scrape(app.clone()).await;
+    // The writer counts a frame after its send returns, so the client can see it first: wait
+    // (bounded) for the counts to catch up before checking them.
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(20);
+    let mut text = scrape(app.clone()).await;
+    while (metric(&text, "voxlight_input_to_frame_seconds_count ") < 1.0
+        || metric(&text, "voxlight_encode_seconds_count ") < 2.0
+        || metric(&text, "voxlight_frames_sent_total{format=\"jpeg\"}") < 2.0)
+        && std::time::Instant::now() < deadline
+    {
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+        text = scrape(app.clone()).await;
+    }
     assert_eq!(metric(&text, "voxlight_sessions_active "), 1.0);
     assert!(metric(&text, "voxlight_frames_sent_total{format=\"jpeg\"}") >= 2.0);
     assert!(metric(&text, "voxlight_bytes_sent_total ") > 0.0);
