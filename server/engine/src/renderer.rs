@@ -261,8 +261,10 @@ impl Renderer {
         self.technique.iteration()
     }
 
+    /// The technique's picture of `scene` is final: no deferred edit waits for it and it has
+    /// its target iterations.
     pub fn converged(&self, scene: &Scene) -> bool {
-        self.technique.iteration() >= self.technique.target_iterations(scene)
+        !self.has_pending() && self.technique.iteration() >= self.technique.target_iterations(scene)
     }
 
     pub fn stats(&self) -> TechniqueStats {
