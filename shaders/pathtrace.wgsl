@@ -22,12 +22,13 @@ fn shadow_transmittance(p: vec3<f32>, dir: vec3<f32>, t_max: f32, rng: ptr<funct
 
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if (gid.x >= scene.width || gid.y >= scene.height) {
+    let y = gid.y * scene.row_stride + scene.row_offset;
+    if (gid.x >= scene.width || y >= scene.height) {
         return;
     }
-    let pixel = gid.y * scene.width + gid.x;
+    let pixel = y * scene.width + gid.x;
     var rng = rng_new(scene.seed, pixel, scene.iteration);
-    let px = vec2<f32>(f32(gid.x) + rng_next(&rng), f32(gid.y) + rng_next(&rng));
+    let px = vec2<f32>(f32(gid.x) + rng_next(&rng), f32(y) + rng_next(&rng));
     let dir = camera_ray_dir(scene, px);
     let radiance = trace_radiance(scene.eye, dir, vec3<f32>(1.0), 0u, MAX_BOUNCES, &rng);
     let estimate = vec4<f32>(radiance, 1.0);

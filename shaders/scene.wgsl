@@ -19,10 +19,17 @@ struct SceneUniforms {
     width: u32,
     height: u32,
     iteration: u32,
-    pad0: u32,
+    // A dispatch of the progressive estimators covers image rows row_offset, row_offset +
+    // row_stride, … (techniques/progressive.rs: a long iteration runs as row_stride bands of
+    // interleaved rows); 0 and 1 for every other pass.
+    row_offset: u32,
     // Macrocells per axis and their edge in voxels (macrocell.wgsl).
     cell_dims: vec3<u32>,
     cell_voxels: u32,
+    row_stride: u32,
+    pad0: u32,
+    pad1: u32,
+    pad2: u32,
 }
 
 const LIGHT_DIRECTIONAL: u32 = 0u;

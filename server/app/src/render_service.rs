@@ -604,7 +604,7 @@ impl RenderThread {
                             next_divisor(divisor, report.view_time, interaction.frame_target);
                     }
                     session.shown_preview = Some(divisor);
-                    (report.view_time + report.light_time, frame)
+                    (report.view_time + report.light_time, Some(frame))
                 }),
             None => {
                 let budget = if session.technique_fresh {
@@ -620,15 +620,28 @@ impl RenderThread {
                     .and_then(|report| {
                         self.metrics
                             .gpu_time(session.renderer.technique_name(), report.gpu_time);
+                        // A long iteration runs in bands: until one completes there is nothing
+                        // new to show (and the first iteration's rows are not all written).
+                        if report.iterations_done == 0 && !report.converged {
+                            return Ok((report.gpu_time, None));
+                        }
                         Ok((
                             report.gpu_time,
-                            session.renderer.frame(&engine, &session.scene)?,
+                            Some(session.renderer.frame(&engine, &session.scene)?),
                         ))
                     })
             }
         };
+        tracing::trace!(
+            session = id,
+            preview = ?preview_divisor,
+            ms = started.elapsed().as_secs_f64() * 1e3,
+            "slice"
+        );
         match result {
-            Ok((gpu_time, frame)) => {
+            // Part of a banded iteration: the session still owes its frame.
+            Ok((_, None)) => {}
+            Ok((gpu_time, Some(frame))) => {
                 // A preview still owes the technique's picture.
                 session.dirty = frame.preview || !frame.converged;
                 session.frame_number += 1;

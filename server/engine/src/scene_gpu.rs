@@ -28,9 +28,15 @@ pub struct SceneUniforms {
     pub width: u32,
     pub height: u32,
     pub iteration: u32,
-    pub pad0: u32,
+    /// First image row and row step of a banded dispatch (techniques::progressive); 0 and 1
+    /// otherwise.
+    pub row_offset: u32,
     pub cell_dims: [u32; 3],
     pub cell_voxels: u32,
+    pub row_stride: u32,
+    pub pad0: u32,
+    pub pad1: u32,
+    pub pad2: u32,
 }
 
 pub const LIGHT_DIRECTIONAL: u32 = 0;
@@ -113,9 +119,13 @@ impl SceneUniforms {
             width: scene.viewport.width,
             height: scene.viewport.height,
             iteration,
-            pad0: 0,
+            row_offset: 0,
             cell_dims: volume.ranges.dims,
             cell_voxels: crate::macrocell::CELL,
+            row_stride: 1,
+            pad0: 0,
+            pad1: 0,
+            pad2: 0,
         })
     }
 }

@@ -58,7 +58,9 @@ pub trait Technique: Send {
     fn apply(&mut self, engine: &Engine, scene: &Scene, change: &Change)
     -> Result<(), EngineError>;
     /// Progressive work for about `budget` (at least one iteration unless converged; a zero
-    /// budget means exactly one, for the first frame after an edit).
+    /// budget means exactly one, for the first frame after an edit). A technique that splits a
+    /// long iteration into parts (`raymarch`, `pathtrace`: bands of rows) may instead return
+    /// after one part with `iterations_done` 0, so that an edit waits for a part only.
     fn step(
         &mut self,
         engine: &Engine,

@@ -204,3 +204,59 @@ fn oversized_viewport_is_refused() {
         .expect("must fail");
     assert!(err.to_string().contains("nope"));
 }
+
+/// A long iteration runs in bands of interleaved rows (techniques::progressive), so that the
+/// render thread can serve an edit between them: each band is a step with no iteration done
+/// until the last one, and the picture is bit for bit the one whole dispatches render, for
+/// both estimators.
+#[test]
+fn banded_iterations_equal_whole_ones_bit_for_bit() {
+    use voxlight_engine::Renderer;
+    use voxlight_engine::techniques::progressive::{Estimator, Progressive};
+    let engine = engine();
+    let (_, volume) = sphere(32);
+    let mut s = scene(
+        ramp_tf(0.7),
+        vec![
+            Light::Point {
+                position: [0.8, -0.9, 0.7],
+                intensity: [2.0; 3],
+            },
+            Light::Environment { radiance: [0.2; 3] },
+        ],
+        8.0,
+        40,
+        3,
+    );
+    s.viewport.height = 36;
+    for estimator in [Estimator::Raymarch, Estimator::Pathtrace] {
+        let whole = Progressive::new(engine, estimator, volume.clone(), &s).unwrap();
+        let mut whole =
+            Renderer::with_technique(engine, Box::new(whole), volume.clone(), &s).unwrap();
+        let mut banded = Progressive::new(engine, estimator, volume.clone(), &s).unwrap();
+        banded.fix_bands(5);
+        let mut banded =
+            Renderer::with_technique(engine, Box::new(banded), volume.clone(), &s).unwrap();
+        // 36 rows in 5 bands (of 8 and 7 rows): five steps per iteration, the last completes it.
+        let mut done = Vec::new();
+        while !banded.converged(&s) {
+            let report = banded.step(engine, &s, std::time::Duration::ZERO).unwrap();
+            done.push(report.iterations_done);
+        }
+        assert_eq!(done, [0, 0, 0, 0, 1].repeat(3), "{estimator:?}");
+        while !whole.converged(&s) {
+            whole
+                .step(engine, &s, std::time::Duration::from_secs(10))
+                .unwrap();
+        }
+        let (a, b) = (
+            whole.read_hdr(engine).unwrap(),
+            banded.read_hdr(engine).unwrap(),
+        );
+        assert!(
+            a.iter().any(|p| p[0] > 0.0),
+            "{estimator:?}: a black picture"
+        );
+        assert_eq!(a, b, "{estimator:?}: banded and whole iterations differ");
+    }
+}

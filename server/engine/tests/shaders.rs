@@ -105,7 +105,8 @@ fn rust_and_wgsl_layouts_agree() {
         "SceneUniforms",
         size_of::<SceneUniforms>(),
         fields!(SceneUniforms: eye, tan_half_fov, right, aspect, up, step, forward, density_scale, box_min, g,
-            box_max, light_count, env_radiance, seed, width, height, iteration, pad0, cell_dims, cell_voxels),
+            box_max, light_count, env_radiance, seed, width, height, iteration, row_offset, cell_dims,
+            cell_voxels, row_stride, pad0, pad1, pad2),
     );
     assert_layout(
         &raymarch,

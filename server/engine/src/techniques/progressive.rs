@@ -2,6 +2,14 @@
 //! the HDR estimate. `raymarch` (shaders/raymarch.wgsl) is single scattering with shadow rays;
 //! `pathtrace` (shaders/pathtrace.wgsl) is the unbiased multiple-scattering reference. Both
 //! use the same per-session buffers.
+//!
+//! - An iteration that takes longer than `BAND_TIME` (seconds at full resolution on a
+//!   software adapter) runs as bands, one per submission, so that `step` returns within about
+//!   a band and the render thread can show an edit that came meanwhile instead of holding it
+//!   for the whole iteration. Band k of n holds rows k, k + n, k + 2n, …: interleaved, every
+//!   band costs about the same (contiguous rows did not: the empty rows above a CT are cheap,
+//!   the ones through it dear). The samples are the same as a whole dispatch's (the random
+//!   numbers depend on the pixel and the iteration only).
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -52,7 +60,29 @@ pub struct Progressive {
     iteration: u32,
     /// Iterations submitted per wait, adapted to the step budget.
     batch: u32,
+    /// Bands an iteration runs as (1: whole), chosen at each iteration's start from the last
+    /// one's time so that a band takes about `BAND_TIME`.
+    bands: u32,
+    /// The next band of the iteration in progress (0 between iterations).
+    next_band: u32,
+    /// Wall time of the iteration in progress's bands so far.
+    iteration_time: Duration,
+    /// `bands` was set by `fix_bands`, not measured.
+    fixed_bands: bool,
     timer: Option<GpuTimer>,
+}
+
+/// An iteration longer than this runs in bands of about this long.
+const BAND_TIME: Duration = Duration::from_millis(25);
+
+/// Bands of a first iteration, before its time is known (on a fast adapter that first
+/// iteration costs this many submissions, then whole iterations follow).
+const FIRST_BANDS: u32 = 32;
+
+/// Bands for an iteration that takes `iteration`: each about `BAND_TIME`, at most one per row.
+fn bands_for(iteration: Duration, height: u32) -> u32 {
+    let bands = (iteration.as_secs_f64() / BAND_TIME.as_secs_f64()).ceil();
+    (bands as u32).clamp(1, height.max(1))
 }
 
 /// Bytes of the HDR accumulation buffer for a viewport.
@@ -120,11 +150,59 @@ impl Progressive {
             height,
             iteration: 0,
             batch: 1,
+            bands: FIRST_BANDS.min(height.max(1)),
+            next_band: 0,
+            iteration_time: Duration::ZERO,
+            fixed_bands: false,
             timer: GpuTimer::new(&engine.gpu, estimator.name()),
         };
         technique.write_tf(engine, scene);
         technique.write_lights(engine, scene);
         Ok(technique)
+    }
+
+    /// Runs every iteration as `bands` bands, whatever they take: for tests and benchmarks of
+    /// the banded path, which otherwise only long iterations take.
+    pub fn fix_bands(&mut self, bands: u32) {
+        self.bands = bands.clamp(1, self.height.max(1));
+        self.fixed_bands = true;
+    }
+
+    /// Renders the next band of the iteration in progress and waits for it; returns its wall
+    /// time (bands are not timed by queries). After the last band the iteration counts and the
+    /// next one's band count is chosen.
+    fn band(&mut self, engine: &Engine, scene: &Scene) -> Result<Duration, EngineError> {
+        let started = Instant::now();
+        let mut uniforms = SceneUniforms::new(scene, &self.volume, self.iteration)
+            .map_err(EngineError::InvalidScene)?;
+        uniforms.row_offset = self.next_band;
+        uniforms.row_stride = self.bands;
+        let rows = (self.height - self.next_band).div_ceil(self.bands);
+        let gpu = &engine.gpu;
+        gpu.queue
+            .write_buffer(&self.scene_buf, 0, bytemuck::bytes_of(&uniforms));
+        let mut encoder = gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some(self.estimator.name()),
+            });
+        self.estimator
+            .pass(engine)
+            .encode(&mut encoder, &self.bind_group, self.width, rows, None);
+        gpu.queue.submit([encoder.finish()]);
+        gpu.wait_idle()?;
+        let took = started.elapsed();
+        self.iteration_time += took;
+        self.next_band += 1;
+        if self.next_band == self.bands {
+            self.next_band = 0;
+            self.iteration += 1;
+            if !self.fixed_bands {
+                self.bands = bands_for(self.iteration_time, self.height);
+            }
+            self.iteration_time = Duration::ZERO;
+        }
+        Ok(took)
     }
 
     /// The buffers the estimator binds (for techniques that add passes over the same ones).
@@ -176,6 +254,8 @@ impl Progressive {
     /// Starts the picture over.
     pub(crate) fn restart(&mut self) {
         self.iteration = 0;
+        self.next_band = 0;
+        self.iteration_time = Duration::ZERO;
     }
 
     pub(crate) fn advance(&mut self) {
@@ -226,7 +306,7 @@ impl Technique for Progressive {
             // More iterations continue the same picture.
             Change::Iterations => return Ok(()),
         }
-        self.iteration = 0;
+        self.restart();
         Ok(())
     }
 
@@ -241,6 +321,16 @@ impl Technique for Progressive {
         let mut done = 0;
         let mut gpu_time = Duration::ZERO;
         while self.iteration < target {
+            if self.bands > 1 {
+                gpu_time += self.band(engine, scene)?;
+                if self.next_band == 0 {
+                    done += 1;
+                }
+                if budget.is_zero() || start.elapsed() >= budget {
+                    break;
+                }
+                continue;
+            }
             // A zero budget asks for one iteration now (the first frame after an edit).
             let batch = if budget.is_zero() { 1 } else { self.batch }.min(target - self.iteration);
             let batch_start = Instant::now();
@@ -281,6 +371,9 @@ impl Technique for Progressive {
             done += batch;
             // Fill about half the remaining budget with the next batch.
             let per_iteration = batch_start.elapsed() / batch;
+            if !self.fixed_bands {
+                self.bands = bands_for(per_iteration, self.height);
+            }
             let remaining = budget.saturating_sub(start.elapsed());
             if remaining.is_zero() {
                 break;
