@@ -13,8 +13,19 @@ struct PreviewParams {
     // Preview image size (the viewport divided by the resolution divisor, rounded up).
     width: u32,
     height: u32,
-    pad0: u32,
-    pad1: u32,
+    // A view dispatch covers rows row_offset, row_offset + row_stride, … and a light-volume
+    // dispatch grid planes z_offset, z_offset + 1, …: a long preview runs in parts between
+    // which an edit can stop it (engine::preview).
+    row_offset: u32,
+    row_stride: u32,
+    // Brightness match (engine::preview::BrightnessMatch): the single scattering's gain and
+    // the approximate multiple scattering's weight, fitted so that the preview's mean meets the
+    // technique's last still.
+    gain: vec3<f32>,
+    // Nonzero: compute the approximate multiple scattering (for a GI technique's preview).
+    multiple: u32,
+    multiple_weight: vec3<f32>,
+    z_offset: u32,
 }
 
 @group(0) @binding(0) var<uniform> scene: SceneUniforms;
@@ -26,7 +37,13 @@ struct PreviewParams {
 @group(0) @binding(4) var<storage, read> cell_max_opacity: array<f32>;
 @group(0) @binding(5) var<uniform> params: PreviewParams;
 @group(0) @binding(6) var<storage, read_write> light_volume: array<f32>;
+// rgb: radiance; w: the view ray's transmittance (the brightness match separates the
+// background seen through the volume from the scattered light with it). The tone map divides
+// by max(w, 1), so a w in [0, 1] leaves the picture as it is.
 @group(0) @binding(7) var<storage, read_write> image: array<vec4<f32>>;
+// The approximate multiple scattering before its weight, rgb as f16 (for the brightness
+// match's fit; written only when params.multiple is set).
+@group(0) @binding(8) var<storage, read_write> image_multiple: array<vec2<u32>>;
 
 fn light_index(c: u32, i: vec3<u32>) -> u32 {
     let d = params.light_dims;

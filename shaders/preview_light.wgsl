@@ -21,8 +21,10 @@ fn env_direction(k: u32) -> vec3<f32> {
     return vec3<f32>(r * cos(phi), r * sin(phi), z);
 }
 
-@compute @workgroup_size(4, 4, 4)
-fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+// One grid plane per workgroup layer, so that a build can run a few planes at a time.
+@compute @workgroup_size(8, 8, 1)
+fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+    let gid = vec3<u32>(id.xy, id.z + params.z_offset);
     if (any(gid >= params.light_dims)) {
         return;
     }
@@ -45,7 +47,8 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     // by the phase function's mean cosine g.
     var mean = 0.0;
     var lobe = vec3<f32>(0.0);
-    if (any(scene.env_radiance > vec3<f32>(0.0))) {
+    // The approximate multiple scattering needs the mean even without an environment.
+    if (any(scene.env_radiance > vec3<f32>(0.0)) || params.multiple != 0u) {
         for (var k = 0u; k < ENV_DIRECTIONS; k++) {
             let w = env_direction(k);
             let tr = light_transmittance(p, w, 1e30);

@@ -44,46 +44,87 @@ fn light_toward(l: u32, p: vec3<f32>, travel: vec3<f32>) -> f32 {
     return light_at(l, box_relative(p - travel * cell * LIGHT_OFFSET_CELLS));
 }
 
-// Radiance scattered toward −view_dir at p per unit albedo, as raymarch's in_scattered
-// estimates it, with every transmittance looked up.
-fn lit(p: vec3<f32>, view_dir: vec3<f32>) -> vec3<f32> {
-    var s = vec3<f32>(0.0);
+// Octaves of the approximate multiple scattering (below).
+const MS_OCTAVES: u32 = 3u;
+
+// Light reaching p, per unit albedo of the sample: `single` toward −view_dir as raymarch's
+// in_scattered estimates it, with every transmittance looked up; `multiple` (only when
+// params.multiple is set) an approximation of the light scattered more than once, for the GI
+// techniques' previews. It follows Wrenninge's octaves ("Oz: The Great and Volumetric", 2013):
+// order i + 1 sees the lights through softened shadows T^(2^-i), isotropically, weighted by
+// (albedo·√(1 − escape))^i, where `escape` is the environment channel's mean transmittance at
+// p, the share of scattered light that leaves without meeting the medium again. Its scale is
+// fitted per session to the technique's still (engine::preview::BrightnessMatch), so only how
+// it changes with the view and the TF matters; docs/architecture.md has the measurements.
+struct Lit {
+    single: vec3<f32>,
+    multiple: vec3<f32>,
+}
+
+fn lit(p: vec3<f32>, view_dir: vec3<f32>, albedo: vec3<f32>) -> Lit {
+    var out = Lit(vec3<f32>(0.0), vec3<f32>(0.0));
+    let u = box_relative(p);
+    let env = scene.light_count;
+    var ms_weight = vec3<f32>(0.0);
+    if (params.multiple != 0u) {
+        let escape = clamp(light_at(env, u), 0.0, 1.0);
+        ms_weight = albedo * sqrt(1.0 - escape);
+    }
     for (var l = 0u; l < scene.light_count; l++) {
         let light = lights[l];
-        if (light.kind == LIGHT_DIRECTIONAL) {
-            let tr = light_toward(l, p, light.vector);
-            s += light.color * tr * phase_hg(dot(light.vector, -view_dir), scene.g);
-        } else {
+        var travel = light.vector;
+        var color = light.color;
+        if (light.kind != LIGHT_DIRECTIONAL) {
             let offset = light.vector - p;
             let dist2 = max(dot(offset, offset), 1e-8);
-            let travel = -offset / sqrt(dist2);
-            let tr = light_toward(l, p, travel);
-            s += light.color / dist2 * tr * phase_hg(dot(travel, -view_dir), scene.g);
+            travel = -offset / sqrt(dist2);
+            color = light.color / dist2;
+        }
+        let tr = light_toward(l, p, travel);
+        out.single += color * tr * phase_hg(dot(travel, -view_dir), scene.g);
+        if (params.multiple != 0u) {
+            var w = vec3<f32>(1.0);
+            var soften = 1.0;
+            for (var i = 0u; i < MS_OCTAVES; i++) {
+                w *= ms_weight;
+                soften *= 0.5;
+                out.multiple += w * color * pow(tr, soften) * INV_4PI;
+            }
         }
     }
-    let u = box_relative(p);
     if (any(scene.env_radiance > vec3<f32>(0.0))) {
         // ∫ phase(ω)·(mean + lobe·ω) dω = mean + g·(lobe·view_dir): Henyey-Greenstein's
         // mean cosine about the ray's direction is g.
-        let env = scene.light_count;
-        var tr = light_at(env, u);
+        let mean = clamp(light_at(env, u), 0.0, 1.0);
+        var tr = mean;
         if (scene.g != 0.0) {
             let lobe = vec3<f32>(light_at(env + 1u, u), light_at(env + 2u, u), light_at(env + 3u, u));
             tr += scene.g * dot(lobe, view_dir);
         }
-        s += scene.env_radiance * clamp(tr, 0.0, 1.0);
+        out.single += scene.env_radiance * clamp(tr, 0.0, 1.0);
+        if (params.multiple != 0u) {
+            var w = vec3<f32>(1.0);
+            var soften = 1.0;
+            for (var i = 0u; i < MS_OCTAVES; i++) {
+                w *= ms_weight;
+                soften *= 0.5;
+                out.multiple += w * scene.env_radiance * pow(mean, soften);
+            }
+        }
     }
-    return s;
+    return out;
 }
 
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if (gid.x >= params.width || gid.y >= params.height) {
+    let y = gid.y * params.row_stride + params.row_offset;
+    if (gid.x >= params.width || y >= params.height) {
         return;
     }
-    let pixel = gid.y * params.width + gid.x;
-    let dir = camera_ray_dir(scene, vec2<f32>(f32(gid.x) + 0.5, f32(gid.y) + 0.5));
-    var radiance = vec3<f32>(0.0);
+    let pixel = y * params.width + gid.x;
+    let dir = camera_ray_dir(scene, vec2<f32>(f32(gid.x) + 0.5, f32(y) + 0.5));
+    var single = vec3<f32>(0.0);
+    var multiple = vec3<f32>(0.0);
     var transmit = 1.0;
     let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
     if (hit.x < hit.y) {
@@ -107,13 +148,18 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
             if (m.a > 0.0) {
                 let alpha = 1.0 - exp(-m.a * step);
                 if (any(m.rgb > vec3<f32>(0.0))) {
-                    radiance += transmit * alpha * m.rgb * lit(p, dir);
+                    let light = lit(p, dir, m.rgb);
+                    single += transmit * alpha * m.rgb * light.single;
+                    multiple += transmit * alpha * m.rgb * light.multiple;
                 }
                 transmit *= 1.0 - alpha;
             }
             k += 1.0;
         }
     }
-    radiance += scene.env_radiance * transmit;
-    image[pixel] = vec4<f32>(radiance, 1.0);
+    let radiance = single * params.gain + multiple * params.multiple_weight;
+    image[pixel] = vec4<f32>(radiance + scene.env_radiance * transmit, transmit);
+    if (params.multiple != 0u) {
+        image_multiple[pixel] = vec2<u32>(pack2x16float(multiple.rg), pack2x16float(vec2<f32>(multiple.b, 0.0)));
+    }
 }

@@ -506,11 +506,24 @@ pub struct FrameMeta {
     /// picture up to its canvas).
     #[serde(default = "full_scale")]
     pub resolution_scale: f32,
+    /// A preview's brightness match to the technique's last still; absent for other frames.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub preview_match: Option<PreviewMatch>,
     pub render_ms: f32,
     pub encode_ms: f32,
     /// Technique-specific figures (as in `stats`).
     #[serde(default)]
     pub details: TechniqueDetails,
+}
+
+/// How a preview's brightness was matched to the technique's still (docs/architecture.md,
+/// "Interaction mode"): the preview is the environment seen through the volume, plus
+/// `gain` × its single scattering, plus `multiple_weight` × its approximate multiple scattering
+/// (GI techniques only), per RGB channel, fitted at the last rest.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PreviewMatch {
+    pub gain: [f32; 3],
+    pub multiple_weight: [f32; 3],
 }
 
 fn full_scale() -> f32 {
@@ -655,6 +668,10 @@ mod tests {
             scene_version: 1,
             preview: true,
             resolution_scale: 0.25,
+            preview_match: Some(PreviewMatch {
+                gain: [1.25, 1.0, 0.5],
+                multiple_weight: [0.5, 0.0, 0.25],
+            }),
             render_ms: 1.0,
             encode_ms: 2.0,
             details: TechniqueDetails {

@@ -4,7 +4,8 @@
 //! the first frame whose `scene_version` shows it), the frames that arrived while dragging
 //! (their spacing, how many were previews, at which resolution scale), the time from the last
 //! edit to the lossless still, and the change of mean brightness from the last preview to that
-//! still (the interaction mode's continuity, which should stay under 1%).
+//! still (the interaction mode's continuity, which should stay under 1%). The drag starts once
+//! the session's first still has arrived, as a user looks at a picture before turning it.
 
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
@@ -45,6 +46,9 @@ pub struct InteractiveBench {
     pub still_iterations: u32,
     /// Longest wait for the still after the drag.
     pub still_timeout: Duration,
+    /// Start the drag at the first technique frame (the technique still refining, as when a
+    /// user turns the volume before it converged), not after the first still.
+    pub drag_while_converging: bool,
 }
 
 /// What one technique at one viewport measured.
@@ -55,6 +59,11 @@ pub struct InteractiveRun {
     pub height: u32,
     /// From `hello` to the first frame.
     pub first_frame_ms: f64,
+    /// From `hello` to what the drag waits for: the session's first converged still (a user
+    /// looks at the picture before turning it; the preview's brightness match is fitted to
+    /// it), or with `drag_while_converging` its first technique frame.
+    pub drag_started_ms: f64,
+    pub drag_while_converging: bool,
     pub edits: u32,
     pub input_to_frame_ms: Percentiles,
     /// Frames that arrived from the first edit until the last edit was shown.
@@ -75,6 +84,8 @@ pub struct InteractiveRun {
     /// luminance (which JPEG's ringing at edges raises, by convexity); None without both.
     pub still_vs_preview_luma: Option<f64>,
     pub still_vs_preview_linear: Option<f64>,
+    /// The last preview's brightness match (FrameMeta.preview_match).
+    pub last_preview_match: Option<voxlight_protocol::PreviewMatch>,
     pub errors: Vec<String>,
 }
 
@@ -372,6 +383,25 @@ async fn run_one(
     .await?;
     ack(&mut socket, first).await?;
     let first_frame_ms = started.elapsed().as_secs_f64() * 1e3;
+    let drag_start = tokio::time::timeout(bench.still_timeout, async {
+        loop {
+            if let Received::Frame(meta, _) = receive(&mut socket).await? {
+                ack(&mut socket, meta.seq).await?;
+                let ready = if bench.drag_while_converging {
+                    !meta.preview && !meta.converged
+                } else {
+                    meta.converged && meta.lossless
+                };
+                if ready {
+                    return anyhow::Ok(());
+                }
+            }
+        }
+    });
+    drag_start.await.context(
+        "no still (or technique frame) to start the drag from within --still-timeout-s",
+    )??;
+    let drag_started_ms = started.elapsed().as_secs_f64() * 1e3;
 
     // The drag. Edits are sent on a timer; every frame is acknowledged as it arrives.
     let mut errors = Vec::new();
@@ -382,6 +412,7 @@ async fn run_one(
     let mut shown = 0usize;
     let mut drag_frames = Vec::new();
     let mut last_preview: Option<(u64, FrameFormat, Vec<u8>)> = None;
+    let mut last_preview_match = None;
     let mut ticker = tokio::time::interval(Duration::from_secs_f64(1.0 / bench.edit_rate));
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let drag_deadline = Instant::now()
@@ -432,6 +463,7 @@ async fn run_one(
                     }
                     if meta.preview {
                         last_preview = Some((meta.scene_version, meta.format, image.clone()));
+                        last_preview_match = meta.preview_match;
                     }
                     let final_version = versions.last().copied().flatten();
                     if sent_at.len() == bench.edits as usize
@@ -482,6 +514,8 @@ async fn run_one(
         width: viewport.width,
         height: viewport.height,
         first_frame_ms,
+        drag_started_ms,
+        drag_while_converging: bench.drag_while_converging,
         edits: bench.edits,
         input_to_frame_ms: Percentiles::of(latencies),
         drag_frames: drag_frames.len() as u32,
@@ -498,6 +532,7 @@ async fn run_one(
         still_iterations: bench.still_iterations,
         still_vs_preview_luma,
         still_vs_preview_linear,
+        last_preview_match,
         errors,
     };
     Ok((run, adapter, dataset))

@@ -389,6 +389,12 @@ fn encode_frame(
         scene_version: rendered.scene_version,
         preview: frame.preview,
         resolution_scale: 1.0 / frame.divisor.max(1) as f32,
+        preview_match: frame
+            .preview_match
+            .map(|m| voxlight_protocol::PreviewMatch {
+                gain: m.gain,
+                multiple_weight: m.multiple_weight,
+            }),
         render_ms: rendered.render_ms,
         encode_ms: started.elapsed().as_secs_f32() * 1000.0,
         details: details.clone(),

@@ -257,6 +257,10 @@ enum Command {
         /// `interactive`: longest wait (s) for the still after the drag.
         #[arg(long, default_value_t = 600.0)]
         still_timeout_s: f64,
+        /// `interactive`: start the drag at the session's first technique frame, while it
+        /// converges, instead of after its first still.
+        #[arg(long)]
+        drag_while_converging: bool,
     },
 }
 
@@ -413,6 +417,7 @@ fn run() -> anyhow::Result<()> {
             edit_rate,
             still_iterations,
             still_timeout_s,
+            drag_while_converging,
         } => {
             use voxlight_engine::techniques::irradiance::{CachedLight, ViewEvent};
             let cached_light = match cached_light.as_str() {
@@ -556,6 +561,7 @@ fn run() -> anyhow::Result<()> {
                         still_iterations,
                         still_timeout: Duration::try_from_secs_f64(still_timeout_s)
                             .context("--still-timeout-s must be a positive number of seconds")?,
+                        drag_while_converging,
                     };
                     serde_json::to_value(interactive(bench, data.clone())?)?
                 }

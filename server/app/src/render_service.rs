@@ -15,7 +15,7 @@
 //! GPU memory: every session and uploaded volume is counted against a global budget, and a
 //! session, dataset switch or viewport that would exceed it is refused (`gpu_memory`).
 
-use std::collections::HashMap;
+use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Weak};
 use std::time::{Duration, Instant};
@@ -347,7 +347,16 @@ impl RenderThread {
 
     fn run(mut self, mut receiver: mpsc::Receiver<Command>) {
         tracing::info!("render thread started");
+        let mut deferred = VecDeque::new();
         loop {
+            // Commands a preview looked at while it rendered come first, in order.
+            while let Some(command) = deferred.pop_front() {
+                if matches!(command, Command::Stop) {
+                    tracing::info!("render thread stopped");
+                    return;
+                }
+                self.handle(command);
+            }
             let now = Instant::now();
             let busy = self
                 .sessions
@@ -387,7 +396,7 @@ impl RenderThread {
                 }
             }
             if let Some(id) = self.next_session() {
-                self.serve(id);
+                self.serve(id, &mut receiver, &mut deferred);
             }
         }
         tracing::info!("render thread stopped");
@@ -570,7 +579,14 @@ impl RenderThread {
     /// One time slice for a session: a preview of its newest edit while input streams in (and
     /// once at full resolution when it rests), else progressive work; then a frame for its
     /// viewers.
-    fn serve(&mut self, id: SessionId) {
+    /// `receiver` and `deferred`: commands a long preview looks at between its parts
+    /// (`interrupted`); they are handled after the slice.
+    fn serve(
+        &mut self,
+        id: SessionId,
+        receiver: &mut mpsc::Receiver<Command>,
+        deferred: &mut VecDeque<Command>,
+    ) {
         self.last_served = id;
         let engine = self.engine.clone();
         let interaction = self.interaction;
@@ -595,17 +611,31 @@ impl RenderThread {
             LightDetail::Full
         };
         let result = match preview_divisor {
-            Some(divisor) => session
-                .renderer
-                .preview_frame(&engine, &session.scene, divisor, light_detail)
-                .map(|(frame, report)| {
-                    if session.moving(&interaction, started) {
-                        session.divisor =
-                            next_divisor(divisor, report.view_time, interaction.frame_target);
-                    }
-                    session.shown_preview = Some(divisor);
-                    (report.view_time + report.light_time, Some(frame))
-                }),
+            Some(divisor) => {
+                // A long preview (the full-resolution one at rest takes seconds on a software
+                // adapter) runs in parts and gives way to an edit of this session.
+                let mut stop = || interrupted(id, receiver, deferred);
+                session
+                    .renderer
+                    .preview_frame_until(&engine, &session.scene, divisor, light_detail, &mut stop)
+                    .map(|rendered| {
+                        rendered.map(|(frame, report)| {
+                            if session.moving(&interaction, started) {
+                                session.divisor = next_divisor(
+                                    divisor,
+                                    report.view_time,
+                                    interaction.frame_target,
+                                );
+                            }
+                            session.shown_preview = Some(divisor);
+                            (report.view_time + report.light_time, frame)
+                        })
+                    })
+                    .map(|rendered| match rendered {
+                        Some((time, frame)) => (time, Some(frame)),
+                        None => (started.elapsed(), None),
+                    })
+            }
             None => {
                 let budget = if session.technique_fresh {
                     Duration::ZERO
@@ -639,7 +669,8 @@ impl RenderThread {
             "slice"
         );
         match result {
-            // Part of a banded iteration: the session still owes its frame.
+            // Part of a banded iteration, or a preview that gave way to an edit: the session
+            // still owes its frame.
             Ok((_, None)) => {}
             Ok((gpu_time, Some(frame))) => {
                 // A preview still owes the technique's picture.
@@ -664,6 +695,35 @@ impl RenderThread {
             }
         }
     }
+}
+
+/// Whether a long preview of session `id` should give way: takes the queued commands into
+/// `deferred` (handled after the slice, in order) until one edits, rebuilds or closes that
+/// session, or stops the thread. At most `COMMAND_QUEUE` are held, the rest stay queued.
+fn interrupted(
+    id: SessionId,
+    receiver: &mut mpsc::Receiver<Command>,
+    deferred: &mut VecDeque<Command>,
+) -> bool {
+    while deferred.len() < COMMAND_QUEUE {
+        let command = match receiver.try_recv() {
+            Ok(command) => command,
+            Err(mpsc::error::TryRecvError::Empty) => return false,
+            Err(mpsc::error::TryRecvError::Disconnected) => return true,
+        };
+        let stops = match &command {
+            Command::Edit { id: of, .. }
+            | Command::Rebuild { id: of, .. }
+            | Command::Close { id: of } => *of == id,
+            Command::Stop => true,
+            Command::Open { .. } | Command::Wake => false,
+        };
+        deferred.push_back(command);
+        if stops {
+            return true;
+        }
+    }
+    false
 }
 
 enum Waited {

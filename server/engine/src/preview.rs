@@ -6,6 +6,8 @@
 //!   density scale, the lights or the volume. Camera moves and colour-only TF edits reuse it.
 //! - The image is the viewport divided by a resolution divisor (1, 2, 4, 8 per axis), rounded
 //!   up; the client scales it to its canvas.
+//! - Its scattered light is scaled by a per-session brightness match (`BrightnessMatch`) so that
+//!   its mean meets the technique's still: no brightness step when input stops.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -42,8 +44,125 @@ const MAX_LIGHT_DIM: u32 = 32;
 /// first moment over directions).
 pub const ENV_CHANNELS: u32 = 4;
 
-/// Bytes per viewport pixel the preview holds: its HDR image and its RGBA8 copy.
-pub const BYTES_PER_PIXEL: u64 = 16 + 4;
+/// Bytes per viewport pixel the preview holds: its HDR image, its multiple scattering (f16) and
+/// its RGBA8 copy.
+pub const BYTES_PER_PIXEL: u64 = 16 + 8 + 4;
+
+/// A preview runs in parts of about this long (`Preview::render_until`) when it is expected to
+/// take longer.
+pub const PART_TIME: Duration = Duration::from_millis(25);
+
+/// Parts of about `part` for work expected to take `expected` (one when unknown), at most
+/// `most`.
+fn parts_of(expected: Option<Duration>, part: Duration, most: u32) -> u32 {
+    match expected {
+        None => 1,
+        Some(t) => {
+            let parts = (t.as_secs_f64() / part.as_secs_f64().max(1e-12)).ceil();
+            (parts.min(f64::from(u32::MAX)) as u32).clamp(1, most.max(1))
+        }
+    }
+}
+
+/// Means over a preview image, per channel (linear radiance).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PreviewMeans {
+    /// Single scattering toward the camera, before the brightness match's gain.
+    pub single: [f64; 3],
+    /// The approximate multiple scattering, before its weight (zero where not computed).
+    pub multiple: [f64; 3],
+    /// The environment seen through the volume (its radiance × the view ray's transmittance),
+    /// which the preview and every technique agree on.
+    pub background: [f64; 3],
+}
+
+/// The preview's brightness match to the session's technique (docs/architecture.md,
+/// "Interaction mode"). The preview's single scattering is lit from a coarse light volume,
+/// and a GI technique's still adds multiple scattering, so their means differed by a few
+/// percent (raymarch) up to tens of percent (GI), which showed as a brightness step when input
+/// stopped. The preview is `background + gain · single + multiple_weight · multiple`, where
+/// `multiple` is an approximation of multiple scattering computed for GI techniques only
+/// (preview_view.wgsl); `gain` or `multiple_weight` is fitted per channel so that a
+/// full-resolution preview's mean meets the technique's refined picture of the same view and
+/// scene, measured when the next edit arrives. The fit holds the scale; how the ratio moves
+/// over one drag (view, TF) is what is left, and the picture's structure is not matched.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BrightnessMatch {
+    /// Gain on the single scattering.
+    pub gain: [f32; 3],
+    /// Weight of the approximate multiple scattering (zero without it).
+    pub multiple_weight: [f32; 3],
+    /// The technique scatters more than once: the preview computes `multiple`.
+    pub multiple_scattering: bool,
+}
+
+impl BrightnessMatch {
+    /// Range of the single-scattering gain (a measurement outside it is a broken one).
+    pub const GAIN_RANGE: (f32, f32) = (0.25, 4.0);
+    /// Largest multiple-scattering weight.
+    pub const MAX_MULTIPLE_WEIGHT: f32 = 8.0;
+    /// The multiple-scattering weight before a still was measured, about what the fit gives on
+    /// the test scenes (docs/benchmarks.md).
+    pub const PRIOR_MULTIPLE_WEIGHT: f32 = 0.4;
+    /// A channel whose single scattering is below this share of the picture's mean keeps its
+    /// match (there is nothing to match, and noise would set it).
+    const MIN_SHARE: f64 = 1e-3;
+
+    pub fn new(multiple_scattering: bool) -> Self {
+        let weight = if multiple_scattering {
+            Self::PRIOR_MULTIPLE_WEIGHT
+        } else {
+            0.0
+        };
+        Self {
+            gain: [1.0; 3],
+            multiple_weight: [weight; 3],
+            multiple_scattering,
+        }
+    }
+
+    /// Fits the match to a full-resolution preview's means and the technique's mean radiance
+    /// over the same view and scene; returns whether any channel changed. A GI technique's
+    /// light beyond the preview's single scattering goes to the multiple-scattering weight;
+    /// otherwise (raymarch, or a still darker than the single scattering) the gain takes it.
+    pub fn update(&mut self, preview: &PreviewMeans, technique: [f64; 3]) -> bool {
+        let mut changed = false;
+        for (c, &technique) in technique.iter().enumerate() {
+            let single = preview.single[c];
+            if !(single > 0.0 && single > Self::MIN_SHARE * (single + preview.background[c])) {
+                continue;
+            }
+            let scattered = technique - preview.background[c];
+            let multiple = preview.multiple[c];
+            let weight = (scattered - single) / multiple;
+            if self.multiple_scattering && multiple > Self::MIN_SHARE * single && weight >= 0.0 {
+                self.gain[c] = 1.0;
+                self.multiple_weight[c] = (weight as f32).min(Self::MAX_MULTIPLE_WEIGHT);
+                changed = true;
+                continue;
+            }
+            let gain = (scattered / single) as f32;
+            if gain.is_finite() {
+                self.gain[c] = gain.clamp(Self::GAIN_RANGE.0, Self::GAIN_RANGE.1);
+                self.multiple_weight[c] = 0.0;
+                changed = true;
+            }
+        }
+        changed
+    }
+}
+
+/// Mean of rgb pixels, per channel.
+pub fn mean_rgb(pixels: &[[f32; 3]]) -> [f64; 3] {
+    let mut sum = [0.0f64; 3];
+    for p in pixels {
+        for c in 0..3 {
+            sum[c] += f64::from(p[c]);
+        }
+    }
+    let n = pixels.len().max(1) as f64;
+    sum.map(|s| s / n)
+}
 
 /// What one preview took.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -64,6 +183,7 @@ pub struct Preview {
     cell_max_opacity: wgpu::Buffer,
     light_volume: wgpu::Buffer,
     image: wgpu::Buffer,
+    image_multiple: wgpu::Buffer,
     tone_params: wgpu::Buffer,
     rgba: wgpu::Buffer,
     bind_group: wgpu::BindGroup,
@@ -82,6 +202,16 @@ pub struct Preview {
     /// The last LUT written (its opacities decide whether the light volume is stale).
     lut: Vec<[f32; 4]>,
     light_rebuilds: u64,
+    /// Brightness match and environment radiance of the last render (to split its image into
+    /// single and multiple scattering and background).
+    rendered_with: Option<(BrightnessMatch, [f32; 3])>,
+    multiple_scattering: bool,
+    /// Measured time per light-volume grid point and per view pixel (with tone mapping and
+    /// readback) of the last build and view pass: how many parts the next ones run in.
+    light_cost: Option<Duration>,
+    view_cost: Option<Duration>,
+    /// How long a part of a preview may take (`PART_TIME`).
+    part_time: Duration,
 }
 
 /// Everything the light volume depends on.
@@ -105,7 +235,14 @@ pub fn preview_size(width: u32, height: u32, divisor: u32) -> (u32, u32) {
 }
 
 impl Preview {
-    pub fn new(engine: &Engine, volume: Arc<GpuVolume>, scene: &Scene) -> Self {
+    /// `multiple_scattering`: the session's technique scatters more than once, so the preview
+    /// computes its approximate multiple scattering (`BrightnessMatch`).
+    pub fn new(
+        engine: &Engine,
+        volume: Arc<GpuVolume>,
+        scene: &Scene,
+        multiple_scattering: bool,
+    ) -> Self {
         let gpu = &engine.gpu;
         let storage = wgpu::BufferUsages::STORAGE;
         let scene_buf = gpu.buffer(
@@ -145,6 +282,12 @@ impl Preview {
             pixels * 16,
             storage | wgpu::BufferUsages::COPY_SRC,
         );
+        // Only a GI technique's preview writes it (a placeholder binding otherwise).
+        let image_multiple = gpu.buffer(
+            "preview image multiple scattering",
+            if multiple_scattering { pixels * 8 } else { 8 },
+            storage | wgpu::BufferUsages::COPY_SRC,
+        );
         let tone_params = gpu.buffer(
             "preview tone params",
             size_of::<ToneParams>() as u64,
@@ -166,6 +309,7 @@ impl Preview {
                 params: &params_buf,
                 light_volume: &light_volume,
                 image: &image,
+                image_multiple: &image_multiple,
             },
         );
         let tone_bind_group = engine.tonemap.bind_group(gpu, &tone_params, &image, &rgba);
@@ -178,6 +322,7 @@ impl Preview {
             cell_max_opacity,
             light_volume,
             image,
+            image_multiple,
             tone_params,
             rgba,
             bind_group,
@@ -190,6 +335,11 @@ impl Preview {
             built_from: None,
             lut: Vec::new(),
             light_rebuilds: 0,
+            rendered_with: None,
+            multiple_scattering,
+            light_cost: None,
+            view_cost: None,
+            part_time: PART_TIME,
         }
     }
 
@@ -203,6 +353,7 @@ impl Preview {
             &self.cell_max_opacity,
             &self.light_volume,
             &self.image,
+            &self.image_multiple,
             &self.tone_params,
             &self.rgba,
         ]
@@ -216,25 +367,50 @@ impl Preview {
         self.light_rebuilds
     }
 
+    /// Sets how long a part of a long preview may take (`PART_TIME` by default; tests use a
+    /// tiny one to split every preview into as many parts as it has rows and grid planes).
+    pub fn set_part_time(&mut self, part_time: Duration) {
+        self.part_time = part_time;
+    }
+
     /// Grid points of the light volume last built.
     pub fn built_light_dims(&self) -> [u32; 3] {
         self.built_dims
     }
 
-    /// Renders one preview of `scene` at `divisor` and reads it back tone-mapped; a stale light
-    /// volume is rebuilt at `detail`.
+    /// Renders one preview of `scene` at `divisor` with its brightness matched by `brightness`
+    /// and reads it back tone-mapped; a stale light volume is rebuilt at `detail`.
     pub fn render(
         &mut self,
         engine: &Engine,
         scene: &Scene,
         divisor: u32,
         detail: LightDetail,
+        brightness: &BrightnessMatch,
     ) -> Result<(Frame, PreviewReport), EngineError> {
+        self.render_until(engine, scene, divisor, detail, brightness, &mut || false)?
+            .ok_or_else(|| EngineError::Gpu("a preview nobody could stop was stopped".into()))
+    }
+
+    /// As `render`, but a preview expected to take longer than `PART_TIME` runs in parts (grid
+    /// planes of the light volume, interleaved bands of image rows), and `stop` is asked
+    /// between them: when it says so the preview is abandoned (None; a partly rebuilt light
+    /// volume counts as stale), so that an edit that came meanwhile waits for one part, not
+    /// for a full-resolution preview (seconds on a software adapter).
+    pub fn render_until(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        divisor: u32,
+        detail: LightDetail,
+        brightness: &BrightnessMatch,
+        stop: &mut dyn FnMut() -> bool,
+    ) -> Result<Option<(Frame, PreviewReport)>, EngineError> {
         let (lights, env) = gpu_lights(&scene.lights);
         if (scene.viewport.width, scene.viewport.height) != (self.width, self.height)
             || lights.len() as u32 + ENV_CHANNELS > self.light_channels
         {
-            *self = Preview::new(engine, self.volume.clone(), scene);
+            *self = Preview::new(engine, self.volume.clone(), scene, self.multiple_scattering);
         }
         let (width, height) = preview_size(self.width, self.height, divisor);
         let gpu = &engine.gpu;
@@ -264,7 +440,6 @@ impl Preview {
             env,
         };
         let channels = inputs.lights.len() as u32 + ENV_CHANNELS;
-        let mut light_time = Duration::ZERO;
         let light_rebuilt = self.built_from.as_ref() != Some(&inputs)
             || (detail == LightDetail::Full && self.built_dims != self.light_dims);
         if light_rebuilt {
@@ -273,33 +448,102 @@ impl Preview {
                 LightDetail::Interactive => self.light_dims.map(|d| d.div_ceil(2).max(2)),
             };
         }
-        let params = PreviewParams {
+        let mut params = PreviewParams {
             light_dims: self.built_dims,
             channels,
             width,
             height,
-            pad0: 0,
-            pad1: 0,
+            row_offset: 0,
+            row_stride: 1,
+            gain: brightness.gain,
+            multiple: u32::from(self.multiple_scattering),
+            multiple_weight: if self.multiple_scattering {
+                brightness.multiple_weight
+            } else {
+                [0.0; 3]
+            },
+            z_offset: 0,
         };
-        gpu.queue
-            .write_buffer(&self.params_buf, 0, bytemuck::bytes_of(&params));
+        let brightness = BrightnessMatch {
+            multiple_weight: params.multiple_weight,
+            multiple_scattering: self.multiple_scattering,
+            ..*brightness
+        };
+        let mut light_time = Duration::ZERO;
         if light_rebuilt {
-            let started = Instant::now();
-            let mut encoder = gpu
-                .device
-                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                    label: Some("preview light volume"),
-                });
-            engine
-                .preview
-                .encode_light(&mut encoder, &self.bind_group, self.built_dims, None);
-            gpu.queue.submit([encoder.finish()]);
-            gpu.wait_idle()?;
-            light_time = started.elapsed();
+            // Until every plane is written it is stale.
+            self.built_from = None;
+            let points_per_plane = u64::from(self.built_dims[0] * self.built_dims[1]);
+            let depth = self.built_dims[2];
+            // As many planes as fit in a part at the last build's cost (one at first).
+            let part_time = self.part_time;
+            let planes_per_part = self.light_cost.map_or(1, |c| {
+                let per_plane = c.as_secs_f64() * points_per_plane as f64;
+                ((part_time.as_secs_f64() / per_plane.max(1e-12)) as u32).clamp(1, depth)
+            });
+            let mut z = 0;
+            while z < depth {
+                let planes = planes_per_part.min(depth - z);
+                params.z_offset = z;
+                let started = Instant::now();
+                gpu.queue
+                    .write_buffer(&self.params_buf, 0, bytemuck::bytes_of(&params));
+                let mut encoder =
+                    gpu.device
+                        .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                            label: Some("preview light volume"),
+                        });
+                engine.preview.encode_light(
+                    &mut encoder,
+                    &self.bind_group,
+                    self.built_dims,
+                    planes,
+                    None,
+                );
+                gpu.queue.submit([encoder.finish()]);
+                gpu.wait_idle()?;
+                let took = started.elapsed();
+                light_time += took;
+                self.light_cost = Some(took / (planes * points_per_plane as u32).max(1));
+                z += planes;
+                if z < depth && stop() {
+                    return Ok(None);
+                }
+            }
+            params.z_offset = 0;
             self.built_from = Some(inputs);
             self.light_rebuilds += 1;
         }
+        self.rendered_with = Some((brightness, env));
         let started = Instant::now();
+        // Interleaved bands of rows, as many as the last view pass's cost per pixel predicts
+        // for this image at a part's time each.
+        let pixels = width * height;
+        let bands = parts_of(self.view_cost.map(|c| c * pixels), self.part_time, height);
+        for band in 0..bands {
+            if band > 0 && stop() {
+                return Ok(None);
+            }
+            params.row_offset = band;
+            params.row_stride = bands;
+            gpu.queue
+                .write_buffer(&self.params_buf, 0, bytemuck::bytes_of(&params));
+            let mut encoder = gpu
+                .device
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("preview view"),
+                });
+            engine.preview.encode_view(
+                &mut encoder,
+                &self.bind_group,
+                (width, (height - band).div_ceil(bands)),
+                None,
+            );
+            gpu.queue.submit([encoder.finish()]);
+            if bands > 1 {
+                gpu.wait_idle()?;
+            }
+        }
         let tone = ToneParams {
             width,
             height,
@@ -311,17 +555,16 @@ impl Preview {
         let mut encoder = gpu
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some("preview view"),
+                label: Some("preview tone map"),
             });
-        engine
-            .preview
-            .encode_view(&mut encoder, &self.bind_group, (width, height), None);
         engine
             .tonemap
             .encode(&mut encoder, &self.tone_bind_group, width, height);
         gpu.queue.submit([encoder.finish()]);
-        let rgba = gpu.read_buffer_range(&self.rgba, 0, width as u64 * height as u64 * 4)?;
+        let rgba = gpu.read_buffer_range(&self.rgba, 0, u64::from(pixels) * 4)?;
         gpu.check()?;
+        let view_time = started.elapsed();
+        self.view_cost = Some(view_time / pixels.max(1));
         let frame = Frame {
             width,
             height,
@@ -331,13 +574,14 @@ impl Preview {
             converged: false,
             divisor,
             preview: true,
+            preview_match: Some(brightness),
         };
         let report = PreviewReport {
-            view_time: started.elapsed(),
+            view_time,
             light_time,
             light_rebuilt,
         };
-        Ok((frame, report))
+        Ok(Some((frame, report)))
     }
 
     /// The linear radiance of the last preview (row 0 at the top), for tests and benchmarks.
@@ -351,6 +595,63 @@ impl Preview {
             .map_err(|e| EngineError::Gpu(format!("preview readback has an odd size: {e}")))?;
         Ok(pixels.iter().map(|p| [p[0], p[1], p[2]]).collect())
     }
+
+    /// Means of the last preview's single and multiple scattering (before the brightness
+    /// match) and background, over its `divisor`'s image.
+    pub fn means(&self, engine: &Engine, divisor: u32) -> Result<PreviewMeans, EngineError> {
+        let Some((brightness, env)) = self.rendered_with else {
+            return Err(EngineError::Gpu("no preview was rendered".into()));
+        };
+        let (width, height) = preview_size(self.width, self.height, divisor);
+        let pixels = width as u64 * height as u64;
+        let bytes = engine.gpu.read_buffer_range(&self.image, 0, pixels * 16)?;
+        let image: &[[f32; 4]] = bytemuck::try_cast_slice(&bytes)
+            .map_err(|e| EngineError::Gpu(format!("preview readback has an odd size: {e}")))?;
+        let multiple = if self.multiple_scattering {
+            let bytes = engine
+                .gpu
+                .read_buffer_range(&self.image_multiple, 0, pixels * 8)?;
+            // pack2x16float: the low half of each u32 is the first value.
+            let halves: &[[u16; 4]] = bytemuck::try_cast_slice(&bytes)
+                .map_err(|e| EngineError::Gpu(format!("preview readback has an odd size: {e}")))?;
+            let f = |bits: u16| half::f16::from_bits(bits).to_f32();
+            halves.iter().map(|h| [f(h[0]), f(h[1]), f(h[2])]).collect()
+        } else {
+            vec![[0.0; 3]; image.len()]
+        };
+        Ok(split_means(image, &multiple, &brightness, env))
+    }
+}
+
+/// Splits preview pixels (rgb = gain · single + multiple_weight · multiple + env · T, w = T)
+/// and their `multiple` into the means of the single and multiple scattering before the match
+/// and of the background.
+fn split_means(
+    image: &[[f32; 4]],
+    multiple: &[[f32; 3]],
+    brightness: &BrightnessMatch,
+    env: [f32; 3],
+) -> PreviewMeans {
+    let mut single = [0.0f64; 3];
+    let mut multiples = [0.0f64; 3];
+    let mut background = [0.0f64; 3];
+    for (p, m) in image.iter().zip(multiple) {
+        let transmit = f64::from(p[3]);
+        for c in 0..3 {
+            let bg = f64::from(env[c]) * transmit;
+            let ms = f64::from(m[c]);
+            background[c] += bg;
+            multiples[c] += ms;
+            single[c] += (f64::from(p[c]) - bg - f64::from(brightness.multiple_weight[c]) * ms)
+                / f64::from(brightness.gain[c]);
+        }
+    }
+    let n = image.len().max(1) as f64;
+    PreviewMeans {
+        single: single.map(|s| s / n),
+        multiple: multiples.map(|s| s / n),
+        background: background.map(|b| b / n),
+    }
 }
 
 #[cfg(test)]
@@ -362,6 +663,90 @@ mod tests {
         assert_eq!(light_dims([256, 256, 256]), [32, 32, 32]);
         assert_eq!(light_dims([512, 512, 128]), [32, 32, 32]);
         assert_eq!(light_dims([32, 32, 3]), [16, 16, 2]);
+    }
+
+    #[test]
+    fn means_split_single_and_multiple_scattering_from_background() {
+        let env = [0.2, 0.1, 0.0];
+        let brightness = BrightnessMatch {
+            gain: [2.0, 1.0, 0.5],
+            multiple_weight: [0.5, 0.0, 1.0],
+            multiple_scattering: true,
+        };
+        // Single 0.3/0.4/0.5 and multiple 0.2/0.2/0.2 behind transmittance 0.5, then a clear
+        // pixel.
+        let mixed = |c: usize, single: f32| {
+            single * brightness.gain[c] + 0.2 * brightness.multiple_weight[c] + env[c] * 0.5
+        };
+        let image = [
+            [mixed(0, 0.3), mixed(1, 0.4), mixed(2, 0.5), 0.5],
+            [env[0], env[1], env[2], 1.0],
+        ];
+        let multiple = [[0.2; 3], [0.0; 3]];
+        let means = split_means(&image, &multiple, &brightness, env);
+        let close = |a: [f64; 3], b: [f64; 3]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-6);
+        assert!(close(means.single, [0.15, 0.2, 0.25]), "{means:?}");
+        assert!(close(means.multiple, [0.1; 3]), "{means:?}");
+        assert!(close(means.background, [0.15, 0.075, 0.0]), "{means:?}");
+    }
+
+    #[test]
+    fn single_scattering_techniques_match_by_gain() {
+        let preview = PreviewMeans {
+            single: [0.2, 0.1, 1e-7],
+            multiple: [0.0; 3],
+            background: [0.3, 0.3, 0.3],
+        };
+        let mut brightness = BrightnessMatch::new(false);
+        // The technique is 0.1 brighter in red, 0.02 darker in green; in blue the volume shows
+        // next to nothing, so its match stays.
+        assert!(brightness.update(&preview, [0.6, 0.38, 0.31]));
+        let g = brightness.gain;
+        assert!(
+            (g[0] - 1.5).abs() < 1e-6 && (g[1] - 0.8).abs() < 1e-6,
+            "{g:?}"
+        );
+        assert_eq!(g[2], 1.0);
+        assert_eq!(brightness.multiple_weight, [0.0; 3]);
+        // A broken measurement is clamped, not taken.
+        assert!(brightness.update(&preview, [100.0, -5.0, 0.3]));
+        let (low, high) = BrightnessMatch::GAIN_RANGE;
+        assert_eq!(brightness.gain, [high, low, 1.0]);
+        // Nothing to match: an empty picture changes nothing.
+        let empty = PreviewMeans {
+            single: [0.0; 3],
+            multiple: [0.0; 3],
+            background: [0.3; 3],
+        };
+        assert!(!brightness.update(&empty, [0.3; 3]));
+    }
+
+    #[test]
+    fn gi_techniques_match_by_the_multiple_scattering_weight() {
+        let preview = PreviewMeans {
+            single: [0.2, 0.2, 0.2],
+            multiple: [0.4, 0.4, 0.0],
+            background: [0.1; 3],
+        };
+        let mut brightness = BrightnessMatch::new(true);
+        assert_eq!(
+            brightness.multiple_weight,
+            [BrightnessMatch::PRIOR_MULTIPLE_WEIGHT; 3]
+        );
+        // Red: 0.2 beyond the single scattering, half the approximation. Green: darker than
+        // the single scattering, so the gain takes it. Blue: no multiple scattering computed.
+        assert!(brightness.update(&preview, [0.5, 0.25, 0.4]));
+        let close = |a: f32, b: f32| (a - b).abs() < 1e-6;
+        assert!(close(brightness.multiple_weight[0], 0.5) && close(brightness.gain[0], 1.0));
+        assert!(close(brightness.multiple_weight[1], 0.0) && close(brightness.gain[1], 0.75));
+        assert!(close(brightness.multiple_weight[2], 0.0) && close(brightness.gain[2], 1.5));
+        // The preview's mean then meets the technique's in every channel.
+        for (c, want) in [0.5, 0.25, 0.4].into_iter().enumerate() {
+            let mean = preview.background[c]
+                + f64::from(brightness.gain[c]) * preview.single[c]
+                + f64::from(brightness.multiple_weight[c]) * preview.multiple[c];
+            assert!((mean - want).abs() < 1e-6, "channel {c}: {mean}");
+        }
     }
 
     #[test]

@@ -7,7 +7,7 @@ use std::time::Duration;
 use voxlight_protocol::TransferFunction;
 
 use crate::passes::tonemap::ToneParams;
-use crate::preview::{LightDetail, Preview, PreviewReport};
+use crate::preview::{BrightnessMatch, LightDetail, Preview, PreviewReport, mean_rgb};
 use crate::technique::{StepReport, Technique, TechniqueStats};
 use crate::techniques::photon::Photon;
 use crate::techniques::progressive::{Estimator, Progressive, accum_bytes};
@@ -27,6 +27,8 @@ pub struct Frame {
     pub divisor: u32,
     /// An interactive preview (passes::preview), not the technique's estimate.
     pub preview: bool,
+    /// A preview's brightness match (`preview::BrightnessMatch`).
+    pub preview_match: Option<BrightnessMatch>,
 }
 
 pub struct Renderer {
@@ -41,6 +43,14 @@ pub struct Renderer {
     preview: Option<Preview>,
     /// Edits the preview already shows and the technique has not seen yet.
     pending: Pending,
+    /// The preview's gain toward the technique's brightness.
+    brightness: BrightnessMatch,
+    /// The edit count the preview image showed when it was last rendered at full resolution:
+    /// it is compared with the technique's picture once the technique has refined that scene
+    /// (read back then, once per drag, not at every preview).
+    reference: Option<u64>,
+    /// Edits deferred or applied so far.
+    edits: u64,
 }
 
 /// Edits queued for the technique while they are shown by the preview (`Renderer::defer`),
@@ -168,6 +178,7 @@ impl Renderer {
         scene: &Scene,
     ) -> Result<Self, EngineError> {
         check_budget(engine, scene)?;
+        let brightness = BrightnessMatch::new(technique.multiple_scattering());
         let (tone_params, rgba, tone_bind_group) =
             tone_resources(engine, technique.output(), scene);
         engine.gpu.check()?;
@@ -181,6 +192,9 @@ impl Renderer {
             height: scene.viewport.height,
             preview: None,
             pending: Pending::default(),
+            brightness,
+            reference: None,
+            edits: 0,
         })
     }
 
@@ -204,8 +218,31 @@ impl Renderer {
         if *change == Change::Viewport {
             return self.apply(engine, scene, change);
         }
+        self.match_brightness(engine)?;
+        self.edits += 1;
         self.pending.push(change);
         Ok(())
+    }
+
+    /// Before an edit changes the scene: when the technique has refined the scene of the last
+    /// full-resolution preview (no edit since, none waiting, at least one iteration), its mean
+    /// sets the preview's brightness match for the previews of this edit and the next ones.
+    fn match_brightness(&mut self, engine: &Engine) -> Result<(), EngineError> {
+        let (Some(edits), Some(preview)) = (self.reference.take(), &self.preview) else {
+            return Ok(());
+        };
+        if edits != self.edits || !self.pending.is_empty() || self.technique.iteration() == 0 {
+            return Ok(());
+        }
+        let means = preview.means(engine, 1)?;
+        let technique = mean_rgb(&self.read_hdr(engine)?);
+        self.brightness.update(&means, technique);
+        Ok(())
+    }
+
+    /// How the preview's brightness is matched to the technique (`preview::BrightnessMatch`).
+    pub fn brightness_match(&self) -> BrightnessMatch {
+        self.brightness
     }
 
     /// Whether deferred edits wait for the technique.
@@ -229,6 +266,7 @@ impl Renderer {
         change: &Change,
     ) -> Result<(), EngineError> {
         self.catch_up(engine, scene)?;
+        self.edits += 1;
         if *change == Change::Viewport {
             check_budget(engine, scene)?;
         }
@@ -283,15 +321,40 @@ impl Renderer {
         divisor: u32,
         detail: LightDetail,
     ) -> Result<(Frame, PreviewReport), EngineError> {
-        let preview = self
-            .preview
-            .get_or_insert_with(|| Preview::new(engine, self.volume.clone(), scene));
-        preview.render(engine, scene, divisor, detail)
+        self.preview_frame_until(engine, scene, divisor, detail, &mut || false)?
+            .ok_or_else(|| EngineError::Gpu("a preview nobody could stop was stopped".into()))
+    }
+
+    /// As `preview_frame`, but a long preview runs in parts and is abandoned (None) when
+    /// `stop` says so between them (`Preview::render_until`).
+    pub fn preview_frame_until(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        divisor: u32,
+        detail: LightDetail,
+        stop: &mut dyn FnMut() -> bool,
+    ) -> Result<Option<(Frame, PreviewReport)>, EngineError> {
+        let multiple_scattering = self.technique.multiple_scattering();
+        let preview = self.preview.get_or_insert_with(|| {
+            Preview::new(engine, self.volume.clone(), scene, multiple_scattering)
+        });
+        let rendered =
+            preview.render_until(engine, scene, divisor, detail, &self.brightness, stop)?;
+        // A full-resolution preview is what the technique's picture of this scene will be
+        // compared with (at the next edit).
+        self.reference = (divisor == 1 && rendered.is_some()).then_some(self.edits);
+        Ok(rendered)
     }
 
     /// The preview, once one was rendered.
     pub fn preview(&self) -> Option<&Preview> {
         self.preview.as_ref()
+    }
+
+    /// The preview, once one was rendered, to configure (`Preview::set_part_time`).
+    pub fn preview_mut(&mut self) -> Option<&mut Preview> {
+        self.preview.as_mut()
     }
 
     /// Tone maps the current estimate and reads it back as RGBA8.
@@ -327,6 +390,7 @@ impl Renderer {
             converged: self.converged(scene),
             divisor: 1,
             preview: false,
+            preview_match: None,
         })
     }
 

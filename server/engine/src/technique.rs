@@ -76,4 +76,9 @@ pub trait Technique: Send {
         scene.target_iterations
     }
     fn stats(&self) -> TechniqueStats;
+    /// Light scatters more than once in its picture (every technique but `raymarch`): the
+    /// interactive preview then adds its approximate multiple scattering.
+    fn multiple_scattering(&self) -> bool {
+        true
+    }
 }

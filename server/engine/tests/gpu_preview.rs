@@ -7,8 +7,8 @@ mod common;
 use std::sync::Arc;
 
 use common::*;
-use voxlight_engine::preview::LightDetail;
-use voxlight_engine::{GpuVolume, Scene};
+use voxlight_engine::preview::{BrightnessMatch, LightDetail, PreviewMeans};
+use voxlight_engine::{Change, GpuVolume, Scene};
 use voxlight_protocol::{Camera, Light};
 
 fn luminance(p: &[f32; 3]) -> f64 {
@@ -197,4 +197,176 @@ fn light_volume_is_rebuilt_only_when_it_must() {
     );
     assert_eq!(rebuilds, 4);
     assert_eq!(again, full, "the same inputs give the same picture");
+}
+
+/// Mean luminance of a preview with its means matched by `brightness`.
+fn preview_luminance(means: &PreviewMeans, brightness: &BrightnessMatch) -> f64 {
+    let c: [f32; 3] = std::array::from_fn(|k| {
+        (means.background[k]
+            + f64::from(brightness.gain[k]) * means.single[k]
+            + f64::from(brightness.multiple_weight[k]) * means.multiple[k]) as f32
+    });
+    luminance(&c)
+}
+
+fn converge(renderer: &mut voxlight_engine::Renderer, scene: &Scene) -> Vec<[f32; 3]> {
+    let engine = engine();
+    while !renderer.converged(scene) {
+        renderer
+            .step(engine, scene, std::time::Duration::from_secs(10))
+            .expect("step");
+    }
+    renderer.read_hdr(engine).expect("hdr")
+}
+
+/// Moving → still without a brightness step (issue 20): a session converges, is dragged (an
+/// orbit and an opacity edit, shown by previews), comes to rest and converges again. The last
+/// preview, a full-resolution one at rest, carries the brightness match fitted to the first
+/// still; its mean must meet the second still's within 1%. Without the match the GI
+/// techniques' stills are brighter by their multiple scattering and raymarch's differs by the
+/// light volume's coarseness, so the test also checks that the match is what closes the gap.
+#[test]
+fn brightness_is_continuous_from_the_last_preview_to_the_still() {
+    let engine = engine();
+    let mut failures = Vec::new();
+    for technique in ["raymarch", "photon", "irradiance", "manylight"] {
+        let (volume, mut scene) = sphere_scene(64, 64);
+        let mut renderer = engine
+            .create_renderer(technique, volume, &scene)
+            .expect("renderer");
+        let prior = renderer.brightness_match();
+        // Session start: a preview, then at rest the full-resolution one and the still.
+        renderer
+            .preview_frame(engine, &scene, 4, LightDetail::Interactive)
+            .expect("preview");
+        renderer
+            .preview_frame(engine, &scene, 1, LightDetail::Full)
+            .expect("preview");
+        converge(&mut renderer, &scene);
+        assert_eq!(
+            renderer.brightness_match(),
+            prior,
+            "fitted only when an edit comes"
+        );
+
+        // The drag: a 15° orbit and the opacities at 80%, each shown by a reduced preview.
+        let old_tf = scene.tf.clone();
+        scene.camera.eye = [
+            scene.camera.eye[0] * 0.966 - scene.camera.eye[1] * 0.259,
+            scene.camera.eye[0] * 0.259 + scene.camera.eye[1] * 0.966,
+            scene.camera.eye[2],
+        ];
+        renderer
+            .defer(engine, &scene, &Change::Camera)
+            .expect("defer");
+        let fitted = renderer.brightness_match();
+        renderer
+            .preview_frame(engine, &scene, 4, LightDetail::Interactive)
+            .expect("preview");
+        for point in &mut scene.tf.points {
+            point.opacity *= 0.8;
+        }
+        renderer
+            .defer(engine, &scene, &Change::tf(&old_tf, &scene.tf))
+            .expect("defer");
+        assert_eq!(
+            renderer.brightness_match(),
+            fitted,
+            "fitted once per rest, not against a moving scene"
+        );
+        let (frame, _) = renderer
+            .preview_frame(engine, &scene, 4, LightDetail::Interactive)
+            .expect("preview");
+        assert_eq!(frame.preview_match, Some(fitted));
+
+        // At rest: the full-resolution preview, then the technique converges.
+        renderer
+            .preview_frame(engine, &scene, 1, LightDetail::Full)
+            .expect("preview");
+        let means = renderer
+            .preview()
+            .expect("a preview")
+            .means(engine, 1)
+            .expect("means");
+        let still = converge(&mut renderer, &scene);
+        let still_mean = still.iter().map(luminance).sum::<f64>() / still.len() as f64;
+        let matched = preview_luminance(&means, &fitted) / still_mean - 1.0;
+        let unmatched = preview_luminance(&means, &BrightnessMatch::new(false)) / still_mean - 1.0;
+        eprintln!(
+            "{technique}: {fitted:?}; last preview vs still {:+.2}% (single scattering alone {:+.2}%)",
+            100.0 * matched,
+            100.0 * unmatched
+        );
+        if matched.abs() >= 0.01 {
+            failures.push(format!(
+                "{technique}: {:+.2}% with the match, {:+.2}% without",
+                100.0 * matched,
+                100.0 * unmatched
+            ));
+        }
+        if technique != "raymarch" && unmatched.abs() < 0.03 {
+            failures.push(format!(
+                "{technique}: the single scattering alone is within {:+.2}%: the scene does not \
+                 test the match",
+                100.0 * unmatched
+            ));
+        }
+    }
+    assert!(failures.is_empty(), "{failures:?}");
+}
+
+/// A long preview (the full-resolution one at rest takes seconds on lavapipe) runs in parts:
+/// grid planes of the light volume, then interleaved bands of rows, with a question between
+/// them whether to give way to an edit. Stopped during the light volume, it leaves the volume
+/// stale (rebuilt next time); in parts it is bit for bit the picture of one dispatch.
+#[test]
+fn a_long_preview_runs_in_parts_and_gives_way() {
+    let engine = engine();
+    let (volume, mut scene) = sphere_scene(64, 1);
+    let mut renderer = engine
+        .create_renderer("raymarch", volume.clone(), &scene)
+        .expect("renderer");
+    renderer
+        .preview_frame(engine, &scene, 1, LightDetail::Full)
+        .expect("preview");
+    let dims = renderer.preview().expect("a preview").built_light_dims();
+    // Every part as small as it can be: one grid plane, one row.
+    renderer
+        .preview_mut()
+        .expect("a preview")
+        .set_part_time(std::time::Duration::from_nanos(1));
+    for point in &mut scene.tf.points {
+        point.opacity *= 0.5;
+    }
+    let mut asked = 0;
+    let stopped = renderer
+        .preview_frame_until(engine, &scene, 1, LightDetail::Full, &mut || {
+            asked += 1;
+            asked == 3
+        })
+        .expect("preview");
+    assert!(stopped.is_none(), "stopped at the third question");
+    let rebuilds = renderer.preview().expect("a preview").light_rebuilds();
+    let mut asked = 0;
+    let (frame, report) = renderer
+        .preview_frame_until(engine, &scene, 1, LightDetail::Full, &mut || {
+            asked += 1;
+            false
+        })
+        .expect("preview")
+        .expect("not stopped");
+    assert!(report.light_rebuilt, "a partly built light volume is stale");
+    assert_eq!(
+        renderer.preview().expect("a preview").light_rebuilds(),
+        rebuilds + 1
+    );
+    // Asked between the planes and between the rows, not after the last of either.
+    assert_eq!(asked, (dims[2] - 1) + (frame.height - 1));
+    let parts = renderer
+        .preview()
+        .expect("a preview")
+        .read_hdr(engine, 1)
+        .expect("hdr");
+    let whole = preview_hdr(volume, &scene, 1);
+    assert_eq!(parts, whole, "a preview in parts differs from a whole one");
 }

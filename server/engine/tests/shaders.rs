@@ -126,7 +126,8 @@ fn rust_and_wgsl_layouts_agree() {
         &preview,
         "PreviewParams",
         size_of::<PreviewParams>(),
-        fields!(PreviewParams: light_dims, channels, width, height, pad0, pad1),
+        fields!(PreviewParams: light_dims, channels, width, height, row_offset, row_stride, gain,
+            multiple, multiple_weight, z_offset),
     );
     let gather = parse_and_validate("manylight_gather", &shaders::manylight_gather());
     assert_layout(

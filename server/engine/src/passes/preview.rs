@@ -1,7 +1,8 @@
 //! The interactive preview's two passes (shaders/preview_light.wgsl, shaders/preview_view.wgsl,
 //! declarations in shaders/preview_common.wgsl): the light volume, then one composited view ray
 //! per preview pixel. Both share one bind group layout: the estimator's scene, volume, TF,
-//! lights and macrocells, plus `PreviewParams`, the light volume and the preview image.
+//! lights and macrocells, plus `PreviewParams`, the light volume and the preview image (with
+//! its approximate multiple scattering kept apart for the brightness match).
 
 use bytemuck::{Pod, Zeroable};
 
@@ -16,12 +17,16 @@ pub struct PreviewParams {
     pub channels: u32,
     pub width: u32,
     pub height: u32,
-    pub pad0: u32,
-    pub pad1: u32,
+    pub row_offset: u32,
+    pub row_stride: u32,
+    pub gain: [f32; 3],
+    pub multiple: u32,
+    pub multiple_weight: [f32; 3],
+    pub z_offset: u32,
 }
 
-/// Workgroup edge of the light-volume pass (`@workgroup_size(4, 4, 4)`).
-const LIGHT_TILE: u32 = 4;
+/// Workgroup of the light-volume pass (`@workgroup_size(8, 8, 1)`: one grid plane per layer).
+const LIGHT_TILE: u32 = 8;
 
 pub struct PreviewPasses {
     pub light: wgpu::ComputePipeline,
@@ -39,6 +44,7 @@ pub struct PreviewBindings<'a> {
     pub params: &'a wgpu::Buffer,
     pub light_volume: &'a wgpu::Buffer,
     pub image: &'a wgpu::Buffer,
+    pub image_multiple: &'a wgpu::Buffer,
 }
 
 impl PreviewPasses {
@@ -56,6 +62,7 @@ impl PreviewPasses {
                     uniform_entry(5),
                     storage_entry(6, false),
                     storage_entry(7, false),
+                    storage_entry(8, false),
                 ],
             });
         let pipeline_layout = gpu
@@ -105,16 +112,18 @@ impl PreviewPasses {
                 buffer(5, b.params),
                 buffer(6, b.light_volume),
                 buffer(7, b.image),
+                buffer(8, b.image_multiple),
             ],
         })
     }
 
-    /// The light volume over `dims` grid points.
+    /// `planes` grid planes of the light volume over `dims` grid points, from `params.z_offset`.
     pub fn encode_light(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         bind_group: &wgpu::BindGroup,
         dims: [u32; 3],
+        planes: u32,
         timestamp_writes: Option<wgpu::ComputePassTimestampWrites>,
     ) {
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
@@ -126,16 +135,17 @@ impl PreviewPasses {
         pass.dispatch_workgroups(
             dims[0].div_ceil(LIGHT_TILE),
             dims[1].div_ceil(LIGHT_TILE),
-            dims[2].div_ceil(LIGHT_TILE),
+            planes,
         );
     }
 
-    /// The view rays of a width × height preview image.
+    /// The view rays of `rows` rows (from `params.row_offset`, every `params.row_stride`-th)
+    /// of a width-wide preview image.
     pub fn encode_view(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         bind_group: &wgpu::BindGroup,
-        (width, height): (u32, u32),
+        (width, rows): (u32, u32),
         timestamp_writes: Option<wgpu::ComputePassTimestampWrites>,
     ) {
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
@@ -144,6 +154,6 @@ impl PreviewPasses {
         });
         pass.set_pipeline(&self.view);
         pass.set_bind_group(0, bind_group, &[]);
-        pass.dispatch_workgroups(width.div_ceil(TILE), height.div_ceil(TILE), 1);
+        pass.dispatch_workgroups(width.div_ceil(TILE), rows.div_ceil(TILE), 1);
     }
 }

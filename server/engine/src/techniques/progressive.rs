@@ -397,6 +397,10 @@ impl Technique for Progressive {
         &self.accum
     }
 
+    fn multiple_scattering(&self) -> bool {
+        self.estimator != Estimator::Raymarch
+    }
+
     fn iteration(&self) -> u32 {
         self.iteration
     }
