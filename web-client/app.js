@@ -39,6 +39,8 @@ const MIN_VIEWPORT_EDGE = 64;
 const MAX_NAME_CHARS = 64;
 /** Frames the server may send before we acknowledge them: one on screen, one decoding. */
 const MAX_IN_FLIGHT = 2;
+/** Frames kept in `voxlight.shownLog`. */
+const SHOWN_LOG = 200;
 /**
  * How long an own edit counts as on its way to the server. Its echo normally comes back within
  * a round trip (a technique switch waits for a rebuild); this only bounds how long a lost echo
@@ -108,6 +110,9 @@ const vx = {
   framesDropped: 0,
   lastMeta: /** @type {FrameMeta|null} */ (null),
   lastShownMeta: /** @type {FrameMeta|null} */ (null),
+  /** The last SHOWN_LOG frames shown, for tests: {seq, version, preview, scale, width, height,
+   * lossless, converged, drawn: the canvas rectangle the picture was scaled to}. */
+  shownLog: /** @type {any[]} */ ([]),
   lastStats: /** @type {any} */ (null),
   lastLatencyMs: /** @type {number|null} */ (null),
   sent: /** @type {Record<string, number>} */ ({}),
@@ -677,9 +682,21 @@ async function decodeAndShow(f) {
     const bmp = await createImageBitmap(new Blob([f.image], { type }));
     if (shownBitmap) shownBitmap.close();
     shownBitmap = bmp;
-    drawShown();
+    const drawn = drawShown();
     vx.framesShown++;
     vx.lastShownMeta = f.meta;
+    vx.shownLog.push({
+      seq: f.meta.seq,
+      version: f.meta.scene_version,
+      preview: !!f.meta.preview,
+      scale: Number(f.meta.resolution_scale ?? 1),
+      width: f.meta.width,
+      height: f.meta.height,
+      lossless: !!f.meta.lossless,
+      converged: !!f.meta.converged,
+      drawn,
+    });
+    if (vx.shownLog.length > SHOWN_LOG) vx.shownLog.shift();
     const now = performance.now();
     shownTimes.push(now);
     while (shownTimes.length && now - shownTimes[0] > 1000) shownTimes.shift();
@@ -696,18 +713,24 @@ async function decodeAndShow(f) {
   }
 }
 
-/** Draws the current bitmap scaled to fit the canvas (letterboxed, aspect kept). */
+/**
+ * Draws the current bitmap scaled to fit the canvas (letterboxed, aspect kept): a reduced
+ * preview is scaled up to the same rectangle as a full-resolution frame.
+ * @returns {{x: number, y: number, w: number, h: number}|null} where it was drawn
+ */
 function drawShown() {
   ctx.fillStyle = '#000';
   ctx.fillRect(0, 0, canvas.width, canvas.height);
   const b = shownBitmap;
-  if (!b) return;
+  if (!b) return null;
   const s = Math.min(canvas.width / b.width, canvas.height / b.height);
   const w = b.width * s;
   const h = b.height * s;
   ctx.imageSmoothingEnabled = true;
   ctx.imageSmoothingQuality = 'high';
-  ctx.drawImage(b, (canvas.width - w) / 2, (canvas.height - h) / 2, w, h);
+  const rect = { x: (canvas.width - w) / 2, y: (canvas.height - h) / 2, w, h };
+  ctx.drawImage(b, rect.x, rect.y, w, h);
+  return rect;
 }
 
 function sampleCanvas(n = 32) {

@@ -94,6 +94,8 @@ async function main() {
     const sample = () => page.evaluate(() => window.voxlight.sample(64));
     const shownVersion = () => page.evaluate(() => window.voxlight.lastShownMeta?.scene_version ?? -1);
     const receivedVersion = () => page.evaluate(() => window.voxlight.lastMeta?.scene_version ?? -1);
+    // The newest frame shown before the orbit drag of step 4 (step 6 looks at what came after).
+    let dragFromSeq = -1;
 
     /**
      * Waits for a displayed frame with scene_version > v whose picture differs from `before` by
@@ -182,6 +184,7 @@ async function main() {
       }
       const before = await sample();
       const v0 = await receivedVersion();
+      dragFromSeq = await page.evaluate(() => window.voxlight.lastShownMeta?.seq ?? -1);
       const cam0 = await page.evaluate(() => window.voxlight.sent.camera || 0);
       const box = await page.locator('#viewer').boundingBox();
       const cx = box.x + box.width / 2;
@@ -223,7 +226,39 @@ async function main() {
       record('converges to a lossless frame', false, String(err.message || err).split('\n')[0]);
     }
 
-    // 6. Technique options: the panel shows the chosen technique's options with the server's
+    // 6. The interaction mode as the viewer shows it (issue 20): the orbit drag of step 4 was
+    //    shown by previews at a reduced resolution (the server's default 60 ms target on a
+    //    software adapter), each the viewport divided by its scale and drawn scaled up to the
+    //    rectangle the full-resolution still fills; then came the lossless still of the viewport.
+    try {
+      const log = await page.evaluate((from) => window.voxlight.shownLog.filter((e) => e.seq > from), dragFromSeq);
+      const vp = await page.evaluate(() => window.voxlight.viewport);
+      const previews = log.filter((e) => e.preview);
+      const reduced = previews.filter((e) => e.scale < 1);
+      const still = log.filter((e) => e.converged && e.lossless).pop();
+      const problems = [];
+      if (reduced.length === 0) problems.push(`no reduced preview among ${previews.length} previews (scales ${[...new Set(previews.map((e) => e.scale))]})`);
+      for (const e of reduced) {
+        const want = [Math.ceil(vp.width * e.scale), Math.ceil(vp.height * e.scale)];
+        if (e.width !== want[0] || e.height !== want[1]) problems.push(`preview at ${e.scale} is ${e.width}×${e.height}, not ${want.join('×')}`);
+      }
+      if (!still) problems.push('no lossless still after the drag');
+      else {
+        if (still.preview || still.scale !== 1 || still.width !== vp.width || still.height !== vp.height) problems.push(`the still is ${still.width}×${still.height} at scale ${still.scale} (preview ${still.preview}), viewport ${vp.width}×${vp.height}`);
+        // Scaled up to the still's rectangle, give or take the rounding of its size.
+        for (const e of reduced) {
+          const off = Math.max(Math.abs(e.drawn.w - still.drawn.w), Math.abs(e.drawn.h - still.drawn.h));
+          if (off > 0.02 * Math.max(still.drawn.w, still.drawn.h)) problems.push(`preview at ${e.scale} drawn ${Math.round(e.drawn.w)}×${Math.round(e.drawn.h)}, the still ${Math.round(still.drawn.w)}×${Math.round(still.drawn.h)}`);
+        }
+        if (log.indexOf(still) < Math.max(...reduced.map((e) => log.indexOf(e)))) problems.push('a preview came after the still');
+      }
+      const scales = reduced.map((e) => e.scale).join(',');
+      record('drag shows reduced previews scaled to the canvas, then the lossless still', problems.length === 0, problems.length ? problems.slice(0, 4).join('; ') : `${reduced.length} reduced previews (scales ${scales}) of ${log.length} frames, then the ${still.width}×${still.height} PNG`);
+    } catch (err) {
+      record('drag shows reduced previews scaled to the canvas, then the lossless still', false, String(err.message || err).split('\n')[0]);
+    }
+
+    // 7. Technique options: the panel shows the chosen technique's options with the server's
     //    defaults; a change goes to the server as a `technique` message and the session keeps it.
     try {
       await page.selectOption('#technique', 'irradiance');
@@ -243,7 +278,7 @@ async function main() {
       record('technique options shown, sent and kept', false, String(err.message || err).split('\n')[0]);
     }
 
-    // 7. No console errors, no uncaught exceptions, no `error` messages from the server.
+    // 8. No console errors, no uncaught exceptions, no `error` messages from the server.
     const serverErrors = await page.evaluate(() => window.voxlight.errors);
     record(
       'no console errors or server error messages',
