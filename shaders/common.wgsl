@@ -60,3 +60,11 @@ fn sample_hg(dir: vec3<f32>, g: f32, u1: f32, u2: f32) -> vec3<f32> {
     let local = vec3<f32>(sin_theta * cos(phi), sin_theta * sin(phi), cos_theta);
     return normalize(orthonormal_basis(dir) * local);
 }
+
+// Image row of invocation row `y` in band `band` of `bands` (a long pass runs as bands, one
+// submission each; engine::techniques::progressive, engine::preview): the band holds the 8-row
+// blocks band, band + bands, …, so that every band costs about the same and each 8×8 workgroup
+// still covers adjacent rows. One band (0 of 1) is the identity.
+fn band_row(y: u32, band: u32, bands: u32) -> u32 {
+    return ((y / 8u) * bands + band) * 8u + y % 8u;
+}

@@ -22,7 +22,7 @@ fn shadow_transmittance(p: vec3<f32>, dir: vec3<f32>, t_max: f32, rng: ptr<funct
 
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let y = gid.y * scene.row_stride + scene.row_offset;
+    let y = band_row(gid.y, scene.row_offset, scene.row_stride);
     if (gid.x >= scene.width || y >= scene.height) {
         return;
     }

@@ -13,9 +13,9 @@ struct PreviewParams {
     // Preview image size (the viewport divided by the resolution divisor, rounded up).
     width: u32,
     height: u32,
-    // A view dispatch covers rows row_offset, row_offset + row_stride, … and a light-volume
-    // dispatch grid planes z_offset, z_offset + 1, …: a long preview runs in parts between
-    // which an edit can stop it (engine::preview).
+    // A view dispatch is band row_offset of row_stride (common.wgsl band_row) and a
+    // light-volume dispatch covers grid planes z_offset, z_offset + 1, …: a long preview runs
+    // in parts between which an edit can stop it (engine::preview).
     row_offset: u32,
     row_stride: u32,
     // Brightness match (engine::preview::BrightnessMatch): the single scattering's gain and

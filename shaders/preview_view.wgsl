@@ -117,7 +117,7 @@ fn lit(p: vec3<f32>, view_dir: vec3<f32>, albedo: vec3<f32>) -> Lit {
 
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let y = gid.y * params.row_stride + params.row_offset;
+    let y = band_row(gid.y, params.row_offset, params.row_stride);
     if (gid.x >= params.width || y >= params.height) {
         return;
     }

@@ -33,7 +33,7 @@ fn in_scattered(p: vec3<f32>, view_dir: vec3<f32>, rng: ptr<function, Rng>) -> v
 
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let y = gid.y * scene.row_stride + scene.row_offset;
+    let y = band_row(gid.y, scene.row_offset, scene.row_stride);
     if (gid.x >= scene.width || y >= scene.height) {
         return;
     }

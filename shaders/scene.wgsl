@@ -19,9 +19,9 @@ struct SceneUniforms {
     width: u32,
     height: u32,
     iteration: u32,
-    // A dispatch of the progressive estimators covers image rows row_offset, row_offset +
-    // row_stride, … (techniques/progressive.rs: a long iteration runs as row_stride bands of
-    // interleaved rows); 0 and 1 for every other pass.
+    // A dispatch of the progressive estimators is band row_offset of row_stride (common.wgsl
+    // band_row; techniques/progressive.rs: a long iteration runs as bands); 0 and 1 for every
+    // other pass.
     row_offset: u32,
     // Macrocells per axis and their edge in voxels (macrocell.wgsl).
     cell_dims: vec3<u32>,

@@ -612,12 +612,15 @@ impl RenderThread {
         };
         let result = match preview_divisor {
             Some(divisor) => {
-                // A long preview (the full-resolution one at rest takes seconds on a software
-                // adapter) runs in parts and gives way to an edit of this session.
+                // The preview at rest (full resolution: seconds on a software adapter) runs in
+                // parts and gives way to an edit of this session; one while moving is sized to
+                // the frame target and runs whole (parts cost throughput).
                 let mut stop = || interrupted(id, receiver, deferred);
+                let stop: Option<&mut dyn FnMut() -> bool> =
+                    (!session.moving(&interaction, started)).then_some(&mut stop);
                 session
                     .renderer
-                    .preview_frame_until(&engine, &session.scene, divisor, light_detail, &mut stop)
+                    .preview_frame_until(&engine, &session.scene, divisor, light_detail, stop)
                     .map(|rendered| {
                         rendered.map(|(frame, report)| {
                             if session.moving(&interaction, started) {

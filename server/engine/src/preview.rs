@@ -18,6 +18,7 @@ use crate::passes::preview::{PreviewBindings, PreviewParams};
 use crate::passes::tonemap::ToneParams;
 use crate::renderer::Frame;
 use crate::scene_gpu::{GpuLight, SceneUniforms, gpu_lights};
+use crate::techniques::progressive::band_rows;
 use crate::tf::{TF_LUT_SIZE, bake};
 use crate::{Engine, EngineError, GpuVolume, Scene};
 
@@ -388,15 +389,17 @@ impl Preview {
         detail: LightDetail,
         brightness: &BrightnessMatch,
     ) -> Result<(Frame, PreviewReport), EngineError> {
-        self.render_until(engine, scene, divisor, detail, brightness, &mut || false)?
+        self.render_until(engine, scene, divisor, detail, brightness, None)?
             .ok_or_else(|| EngineError::Gpu("a preview nobody could stop was stopped".into()))
     }
 
-    /// As `render`, but a preview expected to take longer than `PART_TIME` runs in parts (grid
-    /// planes of the light volume, interleaved bands of image rows), and `stop` is asked
-    /// between them: when it says so the preview is abandoned (None; a partly rebuilt light
-    /// volume counts as stale), so that an edit that came meanwhile waits for one part, not
-    /// for a full-resolution preview (seconds on a software adapter).
+    /// As `render`, but with `stop`, a preview expected to take longer than a part's time
+    /// (`PART_TIME`) runs in parts (grid planes of the light volume, interleaved bands of image
+    /// rows) and `stop` is asked between them: when it says so the preview is abandoned (None;
+    /// a partly rebuilt light volume counts as stale), so that an edit that came meanwhile
+    /// waits for one part, not for a full-resolution preview (seconds on a software adapter).
+    /// Parts cost throughput (a submission and a wait each; about 10% in bands of 25 ms), so a
+    /// preview nobody may stop runs whole.
     pub fn render_until(
         &mut self,
         engine: &Engine,
@@ -404,7 +407,7 @@ impl Preview {
         divisor: u32,
         detail: LightDetail,
         brightness: &BrightnessMatch,
-        stop: &mut dyn FnMut() -> bool,
+        mut stop: Option<&mut dyn FnMut() -> bool>,
     ) -> Result<Option<(Frame, PreviewReport)>, EngineError> {
         let (lights, env) = gpu_lights(&scene.lights);
         if (scene.viewport.width, scene.viewport.height) != (self.width, self.height)
@@ -475,12 +478,17 @@ impl Preview {
             self.built_from = None;
             let points_per_plane = u64::from(self.built_dims[0] * self.built_dims[1]);
             let depth = self.built_dims[2];
-            // As many planes as fit in a part at the last build's cost (one at first).
+            // As many planes as fit in a part at the last build's cost (one at first); all of
+            // them when nobody may stop it.
             let part_time = self.part_time;
-            let planes_per_part = self.light_cost.map_or(1, |c| {
-                let per_plane = c.as_secs_f64() * points_per_plane as f64;
-                ((part_time.as_secs_f64() / per_plane.max(1e-12)) as u32).clamp(1, depth)
-            });
+            let planes_per_part = match (&stop, self.light_cost) {
+                (None, _) => depth,
+                (Some(_), None) => 1,
+                (Some(_), Some(c)) => {
+                    let per_plane = c.as_secs_f64() * points_per_plane as f64;
+                    ((part_time.as_secs_f64() / per_plane.max(1e-12)) as u32).clamp(1, depth)
+                }
+            };
             let mut z = 0;
             while z < depth {
                 let planes = planes_per_part.min(depth - z);
@@ -506,7 +514,7 @@ impl Preview {
                 light_time += took;
                 self.light_cost = Some(took / (planes * points_per_plane as u32).max(1));
                 z += planes;
-                if z < depth && stop() {
+                if z < depth && stop.as_mut().is_some_and(|stop| stop()) {
                     return Ok(None);
                 }
             }
@@ -516,12 +524,19 @@ impl Preview {
         }
         self.rendered_with = Some((brightness, env));
         let started = Instant::now();
-        // Interleaved bands of rows, as many as the last view pass's cost per pixel predicts
-        // for this image at a part's time each.
+        // Interleaved bands of 8-row blocks (common.wgsl band_row), as many as the last view
+        // pass's cost per pixel predicts for this image at a part's time each.
         let pixels = width * height;
-        let bands = parts_of(self.view_cost.map(|c| c * pixels), self.part_time, height);
+        let bands = match stop {
+            None => 1,
+            Some(_) => parts_of(
+                self.view_cost.map(|c| c * pixels),
+                self.part_time,
+                height.div_ceil(8),
+            ),
+        };
         for band in 0..bands {
-            if band > 0 && stop() {
+            if band > 0 && stop.as_mut().is_some_and(|stop| stop()) {
                 return Ok(None);
             }
             params.row_offset = band;
@@ -536,7 +551,7 @@ impl Preview {
             engine.preview.encode_view(
                 &mut encoder,
                 &self.bind_group,
-                (width, (height - band).div_ceil(bands)),
+                (width, band_rows(height, band, bands)),
                 None,
             );
             gpu.queue.submit([encoder.finish()]);

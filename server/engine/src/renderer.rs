@@ -321,19 +321,19 @@ impl Renderer {
         divisor: u32,
         detail: LightDetail,
     ) -> Result<(Frame, PreviewReport), EngineError> {
-        self.preview_frame_until(engine, scene, divisor, detail, &mut || false)?
+        self.preview_frame_until(engine, scene, divisor, detail, None)?
             .ok_or_else(|| EngineError::Gpu("a preview nobody could stop was stopped".into()))
     }
 
-    /// As `preview_frame`, but a long preview runs in parts and is abandoned (None) when
-    /// `stop` says so between them (`Preview::render_until`).
+    /// As `preview_frame`, but with `stop` a long preview runs in parts and is abandoned
+    /// (None) when `stop` says so between them (`Preview::render_until`).
     pub fn preview_frame_until(
         &mut self,
         engine: &Engine,
         scene: &Scene,
         divisor: u32,
         detail: LightDetail,
-        stop: &mut dyn FnMut() -> bool,
+        stop: Option<&mut dyn FnMut() -> bool>,
     ) -> Result<Option<(Frame, PreviewReport)>, EngineError> {
         let multiple_scattering = self.technique.multiple_scattering();
         let preview = self.preview.get_or_insert_with(|| {

@@ -28,8 +28,8 @@ pub struct SceneUniforms {
     pub width: u32,
     pub height: u32,
     pub iteration: u32,
-    /// First image row and row step of a banded dispatch (techniques::progressive); 0 and 1
-    /// otherwise.
+    /// Band and band count of a banded dispatch (common.wgsl `band_row`,
+    /// techniques::progressive); 0 and 1 otherwise.
     pub row_offset: u32,
     pub cell_dims: [u32; 3],
     pub cell_voxels: u32,

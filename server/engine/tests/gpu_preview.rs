@@ -330,7 +330,7 @@ fn a_long_preview_runs_in_parts_and_gives_way() {
         .preview_frame(engine, &scene, 1, LightDetail::Full)
         .expect("preview");
     let dims = renderer.preview().expect("a preview").built_light_dims();
-    // Every part as small as it can be: one grid plane, one row.
+    // Every part as small as it can be: one grid plane, one 8-row block.
     renderer
         .preview_mut()
         .expect("a preview")
@@ -340,19 +340,31 @@ fn a_long_preview_runs_in_parts_and_gives_way() {
     }
     let mut asked = 0;
     let stopped = renderer
-        .preview_frame_until(engine, &scene, 1, LightDetail::Full, &mut || {
-            asked += 1;
-            asked == 3
-        })
+        .preview_frame_until(
+            engine,
+            &scene,
+            1,
+            LightDetail::Full,
+            Some(&mut || {
+                asked += 1;
+                asked == 3
+            }),
+        )
         .expect("preview");
     assert!(stopped.is_none(), "stopped at the third question");
     let rebuilds = renderer.preview().expect("a preview").light_rebuilds();
     let mut asked = 0;
     let (frame, report) = renderer
-        .preview_frame_until(engine, &scene, 1, LightDetail::Full, &mut || {
-            asked += 1;
-            false
-        })
+        .preview_frame_until(
+            engine,
+            &scene,
+            1,
+            LightDetail::Full,
+            Some(&mut || {
+                asked += 1;
+                false
+            }),
+        )
         .expect("preview")
         .expect("not stopped");
     assert!(report.light_rebuilt, "a partly built light volume is stale");
@@ -360,8 +372,8 @@ fn a_long_preview_runs_in_parts_and_gives_way() {
         renderer.preview().expect("a preview").light_rebuilds(),
         rebuilds + 1
     );
-    // Asked between the planes and between the rows, not after the last of either.
-    assert_eq!(asked, (dims[2] - 1) + (frame.height - 1));
+    // Asked between the planes and between the blocks, not after the last of either.
+    assert_eq!(asked, (dims[2] - 1) + (frame.height.div_ceil(8) - 1));
     let parts = renderer
         .preview()
         .expect("a preview")

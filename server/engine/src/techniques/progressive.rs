@@ -6,10 +6,11 @@
 //! - An iteration that takes longer than `BAND_TIME` (seconds at full resolution on a
 //!   software adapter) runs as bands, one per submission, so that `step` returns within about
 //!   a band and the render thread can show an edit that came meanwhile instead of holding it
-//!   for the whole iteration. Band k of n holds rows k, k + n, k + 2n, …: interleaved, every
-//!   band costs about the same (contiguous rows did not: the empty rows above a CT are cheap,
-//!   the ones through it dear). The samples are the same as a whole dispatch's (the random
-//!   numbers depend on the pixel and the iteration only).
+//!   for the whole iteration. Band k of n holds the 8-row blocks k, k + n, k + 2n, …
+//!   (common.wgsl `band_row`): interleaved, every band costs about the same (contiguous bands
+//!   did not: the empty rows above a CT are cheap, the ones through it dear), and each 8×8
+//!   workgroup still covers adjacent rows. The samples are the same as a whole dispatch's (the
+//!   random numbers depend on the pixel and the iteration only).
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -79,10 +80,22 @@ const BAND_TIME: Duration = Duration::from_millis(25);
 /// iteration costs this many submissions, then whole iterations follow).
 const FIRST_BANDS: u32 = 32;
 
-/// Bands for an iteration that takes `iteration`: each about `BAND_TIME`, at most one per row.
+/// Bands for an iteration that takes `iteration`: each about `BAND_TIME`, at most one per
+/// 8-row block.
 fn bands_for(iteration: Duration, height: u32) -> u32 {
     let bands = (iteration.as_secs_f64() / BAND_TIME.as_secs_f64()).ceil();
-    (bands as u32).clamp(1, height.max(1))
+    (bands as u32).clamp(1, blocks(height))
+}
+
+/// 8-row blocks of an image `height` rows tall (the unit of a band).
+fn blocks(height: u32) -> u32 {
+    height.div_ceil(8).max(1)
+}
+
+/// Rows to dispatch for band `band` of `bands` of an image `height` rows tall (whole blocks;
+/// the shader skips rows past the image).
+pub(crate) fn band_rows(height: u32, band: u32, bands: u32) -> u32 {
+    (blocks(height) - band).div_ceil(bands) * 8
 }
 
 /// Bytes of the HDR accumulation buffer for a viewport.
@@ -150,7 +163,7 @@ impl Progressive {
             height,
             iteration: 0,
             batch: 1,
-            bands: FIRST_BANDS.min(height.max(1)),
+            bands: FIRST_BANDS.min(blocks(height)),
             next_band: 0,
             iteration_time: Duration::ZERO,
             fixed_bands: false,
@@ -164,7 +177,7 @@ impl Progressive {
     /// Runs every iteration as `bands` bands, whatever they take: for tests and benchmarks of
     /// the banded path, which otherwise only long iterations take.
     pub fn fix_bands(&mut self, bands: u32) {
-        self.bands = bands.clamp(1, self.height.max(1));
+        self.bands = bands.clamp(1, blocks(self.height));
         self.fixed_bands = true;
     }
 
@@ -177,7 +190,7 @@ impl Progressive {
             .map_err(EngineError::InvalidScene)?;
         uniforms.row_offset = self.next_band;
         uniforms.row_stride = self.bands;
-        let rows = (self.height - self.next_band).div_ceil(self.bands);
+        let rows = band_rows(self.height, self.next_band, self.bands);
         let gpu = &engine.gpu;
         gpu.queue
             .write_buffer(&self.scene_buf, 0, bytemuck::bytes_of(&uniforms));
