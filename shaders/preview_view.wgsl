@@ -61,6 +61,19 @@ struct Lit {
     multiple: vec3<f32>,
 }
 
+// Σ over the octaves i = 1.. of weight^i · transmittance^(2^-i).
+fn octaves(transmittance: f32, weight: vec3<f32>) -> vec3<f32> {
+    var sum = vec3<f32>(0.0);
+    var w = vec3<f32>(1.0);
+    var soften = 1.0;
+    for (var i = 0u; i < MS_OCTAVES; i++) {
+        w *= weight;
+        soften *= 0.5;
+        sum += w * pow(transmittance, soften);
+    }
+    return sum;
+}
+
 fn lit(p: vec3<f32>, view_dir: vec3<f32>, albedo: vec3<f32>) -> Lit {
     var out = Lit(vec3<f32>(0.0), vec3<f32>(0.0));
     let u = box_relative(p);
@@ -83,13 +96,7 @@ fn lit(p: vec3<f32>, view_dir: vec3<f32>, albedo: vec3<f32>) -> Lit {
         let tr = light_toward(l, p, travel);
         out.single += color * tr * phase_hg(dot(travel, -view_dir), scene.g);
         if (params.multiple != 0u) {
-            var w = vec3<f32>(1.0);
-            var soften = 1.0;
-            for (var i = 0u; i < MS_OCTAVES; i++) {
-                w *= ms_weight;
-                soften *= 0.5;
-                out.multiple += w * color * pow(tr, soften) * INV_4PI;
-            }
+            out.multiple += color * INV_4PI * octaves(tr, ms_weight);
         }
     }
     if (any(scene.env_radiance > vec3<f32>(0.0))) {
@@ -103,13 +110,7 @@ fn lit(p: vec3<f32>, view_dir: vec3<f32>, albedo: vec3<f32>) -> Lit {
         }
         out.single += scene.env_radiance * clamp(tr, 0.0, 1.0);
         if (params.multiple != 0u) {
-            var w = vec3<f32>(1.0);
-            var soften = 1.0;
-            for (var i = 0u; i < MS_OCTAVES; i++) {
-                w *= ms_weight;
-                soften *= 0.5;
-                out.multiple += w * scene.env_radiance * pow(mean, soften);
-            }
+            out.multiple += scene.env_radiance * octaves(mean, ms_weight);
         }
     }
     return out;

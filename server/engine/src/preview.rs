@@ -398,8 +398,8 @@ impl Preview {
     /// rows) and `stop` is asked between them: when it says so the preview is abandoned (None;
     /// a partly rebuilt light volume counts as stale), so that an edit that came meanwhile
     /// waits for one part, not for a full-resolution preview (seconds on a software adapter).
-    /// Parts cost throughput (a submission and a wait each; about 10% in bands of 25 ms), so a
-    /// preview nobody may stop runs whole.
+    /// Parts cost throughput (a submission and a wait each), so a preview nobody may stop runs
+    /// whole.
     pub fn render_until(
         &mut self,
         engine: &Engine,
