@@ -799,6 +799,53 @@ mod tests {
     }
 
     #[test]
+    fn a_long_preview_gives_way_only_to_its_own_session() {
+        let edit = |id| Command::Edit {
+            id,
+            scene: Scene::default(),
+            changes: vec![Change::Camera],
+            version: 1,
+        };
+        let (sender, mut receiver) = mpsc::channel(COMMAND_QUEUE);
+        let mut deferred = VecDeque::new();
+        assert!(
+            !interrupted(7, &mut receiver, &mut deferred),
+            "nothing queued"
+        );
+        for command in [
+            Command::Wake,
+            edit(3),
+            Command::Close { id: 4 },
+            edit(7),
+            edit(3),
+        ] {
+            sender.try_send(command).expect("room in the queue");
+        }
+        // Another session's edit or close does not stop it; its own edit does, and what was
+        // taken before it waits in order; the rest stays queued.
+        assert!(interrupted(7, &mut receiver, &mut deferred));
+        let taken: Vec<_> = deferred
+            .iter()
+            .map(|c| match c {
+                Command::Wake => "wake".to_owned(),
+                Command::Edit { id, .. } => format!("edit {id}"),
+                Command::Close { id } => format!("close {id}"),
+                _ => "other".to_owned(),
+            })
+            .collect();
+        assert_eq!(taken, ["wake", "edit 3", "close 4", "edit 7"]);
+        assert!(matches!(
+            receiver.try_recv(),
+            Ok(Command::Edit { id: 3, .. })
+        ));
+        // A stopped thread stops it; so does a closed channel.
+        sender.try_send(Command::Stop).expect("room in the queue");
+        assert!(interrupted(7, &mut receiver, &mut deferred));
+        drop(sender);
+        assert!(interrupted(7, &mut receiver, &mut deferred));
+    }
+
+    #[test]
     fn round_robin_wraps_and_skips_nothing() {
         let waiting = [(2, true), (5, false), (9, true)];
         assert_eq!(pick_round_robin(&waiting, 0), Some(2));
