@@ -96,14 +96,16 @@ fn gather(x: vec3<f32>, view_dir: vec3<f32>, jitter: f32) -> vec3<f32> {
 
 @compute @workgroup_size(8, 8)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if (gid.x >= scene.width || gid.y >= scene.height) {
+    // The same band of rows as the raymarch pass of this iteration (manylight.rs).
+    let y = band_row(gid.y, scene.row_offset, scene.row_stride);
+    if (gid.x >= scene.width || y >= scene.height) {
         return;
     }
-    let pixel = gid.y * scene.width + gid.x;
+    let pixel = y * scene.width + gid.x;
     // Its own stream, independent of the raymarch pass's; every chunk of an iteration picks
     // the same scattering location (same stream), so the chunks sum to one estimate.
     var rng = rng_new(scene.seed ^ 0x5bd1e995u, pixel, scene.iteration);
-    let px = vec2<f32>(f32(gid.x) + rng_next(&rng), f32(gid.y) + rng_next(&rng));
+    let px = vec2<f32>(f32(gid.x) + rng_next(&rng), f32(y) + rng_next(&rng));
     let dir = camera_ray_dir(scene, px);
     let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
     if (hit.x >= hit.y) {

@@ -69,7 +69,9 @@ struct PhotonUniforms {
     // [record_capacity, 2 · record_capacity) the tracking steps of the flight that ended in
     // each slot (with a collision or not). 0 in every other pass.
     census: u32,
-    pad0: u32,
+    // The first list slot of this gather dispatch: a round runs as parts, one submission each,
+    // so that a long gather gives way between them (techniques/photon: GatherInProgress).
+    round_first: u32,
     pad1: u32,
     pad2: u32,
 }

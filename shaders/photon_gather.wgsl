@@ -155,7 +155,7 @@ fn defer_segment(entry: u32, st: GatherState, segment_count: u32) {
 @compute @workgroup_size(64)
 fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let invocation = linear_index(gid, groups);
-    let slot = invocation / photon.round_stride;
+    let slot = photon.round_first + invocation / photon.round_stride;
     let segment_count = scene.width * scene.height * photon.segments;
     if (invocation % photon.round_stride != 0u || slot >= atomicLoad(&counters[COUNTER_LIST + photon.round_input])) {
         return;

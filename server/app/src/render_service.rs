@@ -31,6 +31,9 @@ use voxlight_volumes::Volume;
 /// GPU time one session gets before the next session's turn.
 pub const TIME_SLICE: Duration = Duration::from_millis(30);
 
+/// The longest one submission of a technique should take (`Renderer::set_part_time`).
+const PART_TIME: Duration = Duration::from_millis(40);
+
 /// Commands queued to the render thread before senders wait.
 const COMMAND_QUEUE: usize = 256;
 
@@ -447,6 +450,7 @@ impl RenderThread {
                     .and_then(|gpu_volume| {
                         self.engine.create_renderer(&technique, gpu_volume, &scene)
                     })
+                    .map(with_part_time)
                     .and_then(|renderer| self.check_actual(None, &renderer).map(|()| renderer));
                 match result {
                     Ok(renderer) => {
@@ -543,6 +547,7 @@ impl RenderThread {
                     });
                 let result = gpu_volume
                     .and_then(|v| self.engine.create_renderer(&technique, v, &scene))
+                    .map(with_part_time)
                     .and_then(|renderer| self.check_actual(Some(id), &renderer).map(|()| renderer));
                 match (result, self.sessions.get_mut(&id)) {
                     (Ok(renderer), Some(session)) => {
@@ -698,6 +703,13 @@ impl RenderThread {
             }
         }
     }
+}
+
+/// A renderer whose technique keeps each submission to about `PART_TIME`, so that an edit
+/// waits for a part of the technique's work, not for an iteration of it.
+fn with_part_time(mut renderer: Renderer) -> Renderer {
+    renderer.set_part_time(Some(PART_TIME));
+    renderer
 }
 
 /// Whether a long preview of session `id` should give way: takes the queued commands into

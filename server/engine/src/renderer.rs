@@ -84,9 +84,12 @@ impl Pending {
 
     /// The merged edits for `scene` (the state after all of them), in an order after which
     /// every technique holds what it would after seeing each edit: restarts (params, lights)
-    /// first, then the TF update against the TF before the first edit (view-independent
-    /// state such as photons, cache entries and virtual lights), then the camera (the
-    /// view-dependent state, redone for the final view), then more iterations.
+    /// first, then the camera (the view-dependent state, redone for the final view), then the
+    /// TF update against the TF before the first edit (view-independent state such as photons,
+    /// cache entries and virtual lights), then more iterations. Camera before TF: `photon`
+    /// then updates its photons and starts the camera's gather again with the new TF, where
+    /// the other order updated segments (seconds at 512² on lavapipe) that the camera edit
+    /// then gathered afresh.
     fn take(&mut self, scene: &Scene) -> Vec<Change> {
         let mut changes = Vec::new();
         if std::mem::take(&mut self.params) {
@@ -95,13 +98,13 @@ impl Pending {
         if std::mem::take(&mut self.lights) {
             changes.push(Change::Lights);
         }
+        if std::mem::take(&mut self.camera) {
+            changes.push(Change::Camera);
+        }
         if let Some(old) = self.tf_old.take()
             && old != scene.tf
         {
             changes.push(Change::tf(&old, &scene.tf));
-        }
-        if std::mem::take(&mut self.camera) {
-            changes.push(Change::Camera);
         }
         if std::mem::take(&mut self.iterations) {
             changes.push(Change::Iterations);
@@ -280,6 +283,11 @@ impl Renderer {
             self.height = scene.viewport.height;
         }
         engine.gpu.check()
+    }
+
+    /// The longest one submission of the technique should take (`Technique::set_part_time`).
+    pub fn set_part_time(&mut self, part: Option<Duration>) {
+        self.technique.set_part_time(part);
     }
 
     /// Progressive work for about `budget`.

@@ -67,6 +67,12 @@ pub trait Technique: Send {
         scene: &Scene,
         budget: Duration,
     ) -> Result<StepReport, EngineError>;
+    /// The longest one submission should take while the session may get edits (the render
+    /// service sets it). `raymarch`, `pathtrace`, `manylight` (bands of rows) and `photon`
+    /// (parts of its gather) split long work by themselves; `irradiance` sizes its frames to
+    /// it where a whole image's worth of blocks would take longer (a frame of fewer blocks
+    /// schedules its cache work differently, so it is not the default). Default: ignored.
+    fn set_part_time(&mut self, _part: Option<Duration>) {}
     /// The HDR estimate: width × height `vec4<f32>`, rgb = sum of samples, w = sample count.
     fn output(&self) -> &wgpu::Buffer;
     fn iteration(&self) -> u32;

@@ -691,3 +691,62 @@ fn a_cache_larger_than_the_session_budget_is_refused() {
         Ok(_) => panic!("a huge cache was allocated"),
     }
 }
+
+/// Frames of fewer blocks than the image (`frame_time`, or the render service's part time
+/// where whole frames take long) cover the image in turn after a restart: the first picture
+/// (`iteration` 1) has no pixel without a sample, and the picture counts only then.
+#[test]
+fn frames_of_a_few_blocks_cover_the_image_before_its_first_picture() {
+    let engine = engine();
+    let (_, volume) = sphere(32);
+    let s = scene(
+        ramp_tf(0.8),
+        vec![Light::Directional {
+            direction: [0.3, 0.8, -0.5],
+            irradiance: [3.0; 3],
+        }],
+        10.0,
+        48,
+        2,
+    );
+    // A frame time nothing fits in: one block per frame.
+    let config = IrradianceConfig {
+        frame_time: Some(std::time::Duration::from_nanos(1)),
+        ..fixed(IrradianceConfig::default())
+    };
+    let mut technique = Irradiance::new(engine, volume, &s, config).expect("irradiance");
+    // The first frame, before a block's cost is known, renders the whole image.
+    technique
+        .step(engine, &s, std::time::Duration::ZERO)
+        .expect("step");
+    assert_eq!(technique.iteration(), 1);
+    let mut s = s;
+    s.camera.eye[1] += 0.1;
+    technique
+        .apply(engine, &s, &voxlight_engine::Change::Camera)
+        .expect("apply");
+    for round in 0..2 {
+        let mut frames = 0;
+        while technique.iteration() == 0 {
+            let report = technique
+                .step(engine, &s, std::time::Duration::ZERO)
+                .expect("step");
+            frames += 1;
+            assert_eq!(report.iterations_done, technique.iteration());
+            assert!(frames <= 1000, "no picture after {frames} frames");
+        }
+        assert!(frames > 1, "one frame rendered the whole image");
+        let accum = engine.gpu.read_buffer(technique.output()).expect("read");
+        let unsampled = bytemuck::cast_slice::<u8, [f32; 4]>(&accum)
+            .iter()
+            .filter(|p| p[3] == 0.0)
+            .count();
+        assert_eq!(unsampled, 0, "round {round}: pixels without a sample");
+        // A camera edit restarts the picture: covered again before it counts.
+        s.camera.eye[0] += 0.2;
+        technique
+            .apply(engine, &s, &voxlight_engine::Change::Camera)
+            .expect("apply");
+        assert_eq!(technique.iteration(), 0);
+    }
+}

@@ -372,9 +372,18 @@ fn camera_edit_keeps_photons_and_matches_a_full_recompute() {
     let mut s = cornell_scene(size, cornell_tf(|_, _, _| {}));
     let mut photon = Photon::new(engine(), volume.clone(), &s, p).expect("photon");
     converge(&mut photon, &s);
+    let traced = photon.stats().photons_traced;
     s.camera.eye = [0.3, 0.2, 2.5];
     photon.apply(engine(), &s, &Change::Camera).expect("apply");
-    assert_eq!(photon.iteration(), p.max_passes, "photons were kept");
+    // The segments are gathered again for the new view (by `step`, in parts); no photon is
+    // traced again.
+    converge(&mut photon, &s);
+    assert_eq!(photon.passes(), p.max_passes, "photons were kept");
+    assert_eq!(
+        photon.stats().photons_traced,
+        traced,
+        "no photon traced again"
+    );
     let state = photon.read_state(engine()).expect("read");
     assert!(first_difference(&state, &full_recompute(&volume, &s, p)).is_none());
 }
@@ -827,4 +836,99 @@ fn dense_media_are_refused_where_tracking_would_be_cut_short() {
         },
         None => assert!(result.is_ok(), "{result:?}"),
     }
+}
+
+/// A pass's gather (and a camera edit's) runs as parts, one submission each, so that `step`
+/// returns between them: a pass counts once its gather is done, a camera edit drops the
+/// gather under way, a TF edit finishes it before its update. The result is a full
+/// recompute's, bit for bit.
+#[test]
+fn gathers_in_parts_equal_a_full_recompute_bit_for_bit() {
+    let engine = engine();
+    let volume = engine
+        .upload_volume(&voxlight_volumes::phantom("cornell", 32).expect("cornell"))
+        .expect("upload");
+    let p = params(Invalidation::DirtyCells);
+    let s = cornell_scene(24, cornell_tf(|_, _, _| {}));
+    // 24² pixels × 6 segments, at most 3456 list slots: parts of 1000 take up to four steps.
+    let mut photon = Photon::new(engine, volume.clone(), &s, p).expect("photon");
+    photon.fix_gather_part(1000);
+    let mut done = Vec::new();
+    loop {
+        let report = photon.step(engine, &s, Duration::ZERO).expect("step");
+        done.push((report.iterations_done, report.iteration));
+        if report.converged {
+            break;
+        }
+    }
+    // Per pass: the trace and the gather's start, then the parts, the last with the
+    // composite: a pass counts only then.
+    let completed: Vec<usize> = (0..done.len()).filter(|&i| done[i].0 == 1).collect();
+    assert_eq!(completed.len(), 2, "{done:?}");
+    assert_eq!(completed[1], done.len() - 1, "{done:?}");
+    for (i, &(_, iteration)) in done.iter().enumerate() {
+        assert_eq!(
+            iteration,
+            completed.iter().filter(|&&c| c <= i).count() as u32
+        );
+    }
+    assert!(
+        completed[0] >= 2 && completed[1] - completed[0] >= 3,
+        "a gather of up to 3456 slots in parts of 1000 took one step: {done:?}"
+    );
+
+    // A camera edit: the gather starts again for the new view; one part in, a second camera
+    // edit drops it for its own.
+    let mut turned = s.clone();
+    turned.camera.eye = [0.4, 0.2, 2.5];
+    photon
+        .apply(engine, &turned, &Change::Camera)
+        .expect("apply");
+    assert_eq!(
+        photon.iteration(),
+        0,
+        "the old view's picture is not this view's"
+    );
+    photon.step(engine, &turned, Duration::ZERO).expect("step");
+    let mut turned_again = turned.clone();
+    turned_again.camera.eye = [-0.3, 0.1, 2.6];
+    photon
+        .apply(engine, &turned_again, &Change::Camera)
+        .expect("apply");
+    converge(&mut photon, &turned_again);
+    let full = full_recompute(&volume, &turned_again, p);
+    let state = photon.read_state(engine).expect("read");
+    assert_eq!(first_difference(&state, &full), None);
+
+    // A TF edit while a camera edit's gather is under way: the photons are updated and the
+    // gather starts again with the new TF.
+    photon.apply(engine, &s, &Change::Camera).expect("apply");
+    photon.step(engine, &s, Duration::ZERO).expect("step");
+    let mut edited = s.clone();
+    edited.tf = cornell_tf(|n, c, o| {
+        if n == "tall block" {
+            *c = [0.2, 0.7, 0.2];
+            *o *= 0.5;
+        }
+    });
+    let edit = Change::tf(&s.tf, &edited.tf);
+    photon.apply(engine, &edited, &edit).expect("apply");
+    let update = photon.last_update().expect("an update");
+    assert!(update.paths_retraced > 0 && update.paths_retraced < update.paths);
+    converge(&mut photon, &edited);
+    let full = full_recompute(&volume, &edited, p);
+    let state = photon.read_state(engine).expect("read");
+    assert_eq!(first_difference(&state, &full), None);
+
+    // A TF edit with no gather under way: the incremental update, as before (finished at
+    // once, no part left for `step`).
+    let mut back = edited.clone();
+    back.tf = s.tf.clone();
+    photon
+        .apply(engine, &back, &Change::tf(&edited.tf, &back.tf))
+        .expect("apply");
+    assert_eq!(photon.iteration(), p.max_passes);
+    let full = full_recompute(&volume, &back, p);
+    let state = photon.read_state(engine).expect("read");
+    assert_eq!(first_difference(&state, &full), None);
 }

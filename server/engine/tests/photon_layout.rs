@@ -58,7 +58,7 @@ fn photon_structs_match_wgsl() {
                 emitter_count, spatial, round_input, round_budget, round_stride,
                 opacity_query_lo, opacity_query_hi, grid_pass, change_capacity,
                 record_capacity, collision_query_lo, collision_query_hi, scatter_capacity,
-                scatter_samples, census, pad0, pad1, pad2),
+                scatter_samples, census, round_first, pad1, pad2),
         );
         assert_layout(
             &module,

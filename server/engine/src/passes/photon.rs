@@ -46,7 +46,7 @@ pub struct PhotonUniforms {
     pub scatter_capacity: u32,
     pub scatter_samples: u32,
     pub census: u32,
-    pub pad0: u32,
+    pub round_first: u32,
     pub pad1: u32,
     pub pad2: u32,
 }

@@ -752,14 +752,25 @@ impl Manylight {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) })
     }
 
-    /// One iteration: the raymarch estimator's single scattering, then the gather pass.
-    fn iterate(&mut self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
+    /// The next band of an iteration (the raymarch estimator's single scattering, then the
+    /// gather pass, over the same rows; one submission) and waits for it; returns whether the
+    /// iteration completed. A short iteration is one band; a long one (seconds at 512² on a
+    /// software adapter) runs as bands of about `progressive::BAND_TIME`, so that an edit
+    /// waits for a band, not for the iteration. Bit-exact with a whole iteration: the random
+    /// numbers depend on the pixel and the iteration only.
+    fn iterate_band(&mut self, engine: &Engine, scene: &Scene) -> Result<bool, EngineError> {
+        let started = Instant::now();
         let mut encoder = self.encoder(engine, "manylight iteration");
-        self.base.encode_next(engine, scene, &mut encoder)?;
-        self.encode_gather(engine, &mut encoder);
+        let band = self.base.encode_band(engine, scene, &mut encoder)?;
+        self.encode_gather(engine, &mut encoder, band.rows);
         engine.gpu.queue.submit([encoder.finish()]);
-        self.base.advance();
-        Ok(())
+        engine.gpu.wait_idle()?;
+        Ok(self.base.finish_band(started.elapsed()))
+    }
+
+    /// Runs every iteration as `bands` bands (tests of the banded path).
+    pub fn fix_bands(&mut self, bands: u32) {
+        self.base.fix_bands(bands);
     }
 
     /// Re-weights every light for a new Henyey-Greenstein g without new paths: the directions
@@ -875,18 +886,21 @@ impl Manylight {
         self.base.encode_uniforms(engine, scene)?;
         engine.gpu.wait_idle()?;
         let started = Instant::now();
+        let (_, height) = self.base.size();
         for _ in 0..iterations {
             let mut encoder = self.encoder(engine, "manylight gather timing");
-            self.encode_gather(engine, &mut encoder);
+            self.encode_gather(engine, &mut encoder, height);
             engine.gpu.queue.submit([encoder.finish()]);
         }
         engine.gpu.wait_idle()?;
         Ok(started.elapsed())
     }
 
-    /// The gather dispatches of one iteration, one per chunk of virtual lights.
-    fn encode_gather(&self, engine: &Engine, encoder: &mut wgpu::CommandEncoder) {
-        let (width, height) = self.base.size();
+    /// The gather dispatches of one band of `rows` rows (the scene uniforms' band), one per
+    /// chunk of virtual lights.
+    fn encode_gather(&self, engine: &Engine, encoder: &mut wgpu::CommandEncoder, rows: u32) {
+        let (width, _) = self.base.size();
+        let height = rows;
         let tile = crate::passes::TILE;
         for c in 0..self.chunk_count() {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
@@ -1045,11 +1059,17 @@ impl Technique for Manylight {
         if self.stale && self.preview_pending && self.base.iteration() < target {
             // The immediate response: the new TF/lights for single scattering and the view,
             // the previous virtual lights for multiple scattering; discarded once rebuilt.
-            self.preview_pending = false;
-            self.iterate(engine, scene)?;
-            engine.gpu.wait_idle()?;
+            let completed = loop {
+                if self.iterate_band(engine, scene)? {
+                    break true;
+                }
+                if budget.is_zero() || started.elapsed() >= budget {
+                    break false;
+                }
+            };
+            self.preview_pending = !completed;
             return Ok(StepReport {
-                iterations_done: 1,
+                iterations_done: completed as u32,
                 iteration: self.base.iteration(),
                 converged: false,
                 gpu_time: started.elapsed(),
@@ -1067,18 +1087,20 @@ impl Technique for Manylight {
         let mut done = 0;
         loop {
             if self.pending.is_some() {
-                // A few maps per step, sized to half the budget by the last build's rate; the
-                // picture restarts with each change of the lights.
+                // A few maps per step, sized to half the budget by the last build's rate. The
+                // picture waits for the last of them (the immediate response stays on screen):
+                // an iteration between parts would restart with each change of the lights, and
+                // on a slow adapter one iteration costs more than the whole rebuild (a manylight
+                // iteration at 512² takes ~6 s on lavapipe, a TF edit's maps ~2 s).
                 let per_map = self.last_build.avsm.as_secs_f64() / self.count.max(1) as f64;
                 let maps = (0.5 * budget.as_secs_f64() / per_map.max(1e-6)) as usize;
                 self.advance_tf_update(engine, scene, maps.max(MIN_MAPS_PER_STEP))?;
                 self.base.restart();
-            }
-            if self.base.iteration() < target {
-                self.iterate(engine, scene)?;
-                done += 1;
-                engine.gpu.wait_idle()?;
-            } else if self.pending.is_none() {
+            } else if self.base.iteration() < target {
+                if self.iterate_band(engine, scene)? {
+                    done += 1;
+                }
+            } else {
                 break;
             }
             if budget.is_zero() || started.elapsed() >= budget {

@@ -98,6 +98,15 @@ pub(crate) fn band_rows(height: u32, band: u32, bands: u32) -> u32 {
     (blocks(height) - band).div_ceil(bands) * 8
 }
 
+/// One band of an iteration: the dispatch's `row_offset`/`row_stride` (common.wgsl
+/// `band_row`) and the rows it dispatches.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct Band {
+    pub offset: u32,
+    pub stride: u32,
+    pub rows: u32,
+}
+
 /// Bytes of the HDR accumulation buffer for a viewport.
 pub fn accum_bytes(width: u32, height: u32) -> u64 {
     width as u64 * height as u64 * 16
@@ -186,36 +195,66 @@ impl Progressive {
     /// next one's band count is chosen.
     fn band(&mut self, engine: &Engine, scene: &Scene) -> Result<Duration, EngineError> {
         let started = Instant::now();
+        let mut encoder =
+            engine
+                .gpu
+                .device
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some(self.estimator.name()),
+                });
+        self.encode_band(engine, scene, &mut encoder)?;
+        engine.gpu.queue.submit([encoder.finish()]);
+        engine.gpu.wait_idle()?;
+        let took = started.elapsed();
+        self.finish_band(took);
+        Ok(took)
+    }
+
+    /// Writes the uniforms of the next band of the iteration in progress (row_offset and
+    /// row_stride) and encodes its estimator dispatch; returns the band (row_offset,
+    /// row_stride, rows to dispatch) for passes that add to the same pixels (`manylight`'s
+    /// gather). The caller submits, waits, then calls `finish_band`.
+    pub(crate) fn encode_band(
+        &self,
+        engine: &Engine,
+        scene: &Scene,
+        encoder: &mut wgpu::CommandEncoder,
+    ) -> Result<Band, EngineError> {
         let mut uniforms = SceneUniforms::new(scene, &self.volume, self.iteration)
             .map_err(EngineError::InvalidScene)?;
-        uniforms.row_offset = self.next_band;
-        uniforms.row_stride = self.bands;
-        let rows = band_rows(self.height, self.next_band, self.bands);
-        let gpu = &engine.gpu;
-        gpu.queue
+        let band = Band {
+            offset: self.next_band,
+            stride: self.bands,
+            rows: band_rows(self.height, self.next_band, self.bands),
+        };
+        uniforms.row_offset = band.offset;
+        uniforms.row_stride = band.stride;
+        engine
+            .gpu
+            .queue
             .write_buffer(&self.scene_buf, 0, bytemuck::bytes_of(&uniforms));
-        let mut encoder = gpu
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some(self.estimator.name()),
-            });
         self.estimator
             .pass(engine)
-            .encode(&mut encoder, &self.bind_group, self.width, rows, None);
-        gpu.queue.submit([encoder.finish()]);
-        gpu.wait_idle()?;
-        let took = started.elapsed();
+            .encode(encoder, &self.bind_group, self.width, band.rows, None);
+        Ok(band)
+    }
+
+    /// Counts a band that took `took` (its passes included): after the last band of an
+    /// iteration the iteration counts and the next one's band count is chosen from the
+    /// iteration's time. Returns whether the iteration completed.
+    pub(crate) fn finish_band(&mut self, took: Duration) -> bool {
         self.iteration_time += took;
         self.next_band += 1;
-        if self.next_band == self.bands {
-            self.next_band = 0;
-            self.iteration += 1;
-            if !self.fixed_bands {
-                self.bands = bands_for(self.iteration_time, self.height);
-            }
-            self.iteration_time = Duration::ZERO;
+        if self.next_band < self.bands {
+            return false;
         }
-        Ok(took)
+        self.next_band = 0;
+        self.iteration += 1;
+        if !self.fixed_bands {
+            self.bands = bands_for(self.iteration_time, self.height);
+        }
+        self.iteration_time = Duration::ZERO;
+        true
     }
 
     /// The buffers the estimator binds (for techniques that add passes over the same ones).
@@ -228,25 +267,6 @@ impl Progressive {
             accum: &self.accum,
             cell_max_opacity: &self.cell_max_opacity,
         }
-    }
-
-    /// Writes the uniforms of the next iteration and encodes its estimator dispatch; the caller
-    /// submits, then calls `advance`.
-    pub(crate) fn encode_next(
-        &self,
-        engine: &Engine,
-        scene: &Scene,
-        encoder: &mut wgpu::CommandEncoder,
-    ) -> Result<(), EngineError> {
-        self.encode_uniforms(engine, scene)?;
-        self.estimator.pass(engine).encode(
-            encoder,
-            &self.bind_group,
-            self.width,
-            self.height,
-            None,
-        );
-        Ok(())
     }
 
     /// Writes the scene uniforms of the next iteration.
@@ -269,10 +289,6 @@ impl Progressive {
         self.iteration = 0;
         self.next_band = 0;
         self.iteration_time = Duration::ZERO;
-    }
-
-    pub(crate) fn advance(&mut self) {
-        self.iteration += 1;
     }
 
     pub(crate) fn size(&self) -> (u32, u32) {

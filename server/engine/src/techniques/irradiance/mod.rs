@@ -584,6 +584,11 @@ pub struct Irradiance {
     /// Seconds the frames so far ran over their `frame_time` (negative: under), taken off the
     /// next frame's rendering so that equal time per frame holds on average, not only as planned.
     time_debt: f64,
+    /// The longest one frame (one submission) should take where a whole image's worth of
+    /// blocks takes longer (`Technique::set_part_time`): frames are then sized to it, as with
+    /// `frame_time`, so that an edit waits for a part, not for an image (~3 s at 512² on
+    /// lavapipe). None: whole frames.
+    part_time: Option<Duration>,
     pub last_frame: FrameTimes,
     lcg: u64,
     timer: Option<PhaseTimer>,
@@ -725,6 +730,7 @@ impl Irradiance {
             cache_bounces: config.bounces,
             bookkeeping_cost: None,
             time_debt: 0.0,
+            part_time: None,
             last_frame: FrameTimes::default(),
             lcg: 0x853c_49e6_748f_ea9b ^ scene.seed as u64,
             timer: PhaseTimer::new(engine),
@@ -1112,7 +1118,10 @@ impl Irradiance {
         let n = self.layout.block_count as usize;
         let mut counts = vec![0usize; n];
         let mut left = renders.min(n * MAX_RENDER_PASSES);
-        if self.config.priorities && self.priorities.len() == n {
+        // Priorities only once every block has been rendered since the restart: frames of
+        // fewer blocks than the image (`frame_limit`) cover it in turn first, so that the first
+        // picture (`iteration` 1) has no block left black.
+        if self.config.priorities && self.priorities.len() == n && self.block_renders >= n as u64 {
             for i in 0..n {
                 let b = (self.cursor as usize + i) % n;
                 if left > 0 && self.priorities[b] >= PRIORITY_UNSAMPLED {
@@ -1205,7 +1214,8 @@ impl Irradiance {
         // whole rounds (a round of every pending request, an update round of every block),
         // at most one frame's share or one round ahead.
         let n = self.layout.block_count as usize;
-        let frame_time = match self.config.frame_time {
+        let frame_limit = self.frame_limit();
+        let frame_time = match frame_limit {
             Some(t) => t.as_secs_f64(),
             None => self.block_cost.unwrap_or(0.0) * n as f64 / (1.0 - tc - tu).max(0.5),
         };
@@ -1245,7 +1255,7 @@ impl Irradiance {
             }
         }
         // Rendering gets the rest of the frame.
-        let renders = match (self.config.frame_time, self.block_cost) {
+        let renders = match (frame_limit, self.block_cost) {
             (Some(frame), Some(cost)) => {
                 let left = frame.as_secs_f64()
                     - planned
@@ -1522,7 +1532,7 @@ impl Irradiance {
         ));
         // Estimates of the blocks' and rounds' costs miss in both directions, and the misses do
         // not cancel (the in-turn runs of bench convergence overran plain's frames by 3–9%).
-        if let Some(frame) = self.config.frame_time {
+        if let Some(frame) = frame_limit {
             let frame = frame.as_secs_f64();
             self.time_debt = (self.time_debt + elapsed.as_secs_f64() - frame).clamp(-frame, frame);
         }
@@ -1606,6 +1616,22 @@ impl Irradiance {
         }
         self.stats.last_edit = Some((before, self.mirror.len() as u32));
         Ok(())
+    }
+
+    /// The time a frame is sized to: `frame_time`, else `part_time` where a whole image's
+    /// worth of blocks is estimated to take longer than it.
+    fn frame_limit(&self) -> Option<Duration> {
+        if self.config.frame_time.is_some() {
+            return self.config.frame_time;
+        }
+        // A frame's bookkeeping (the priority and requests passes, the read-back, the octree)
+        // does not shrink with it: frames at least eight times as long (~100–200 ms at 512² on
+        // lavapipe) took the drag bench's still 23 s after the drag, whole frames 18 s, 40 ms
+        // frames 103 s and four times the bookkeeping 37 s.
+        let bookkeeping = self.bookkeeping_cost.unwrap_or(0.0);
+        let part = self.part_time?.as_secs_f64().max(8.0 * bookkeeping);
+        let whole = self.block_cost? * self.layout.block_count as f64 + bookkeeping;
+        (whole > part).then(|| Duration::from_secs_f64(part))
     }
 
     /// Sets the time per frame (None: an image's worth of blocks per frame).
@@ -1847,19 +1873,19 @@ impl Technique for Irradiance {
     ) -> Result<StepReport, EngineError> {
         let target = scene.target_iterations;
         let start = Instant::now();
-        let mut done = 0;
+        let before = self.iteration();
         let mut gpu_time = Duration::ZERO;
         while self.iteration() < target {
-            // A zero budget asks for one picture now (the first frame after an edit).
+            // A zero budget asks for one frame now (the first after an edit: a picture, or
+            // with `part_time` a part of one).
             let times = self.frame(engine, scene, !budget.is_zero())?;
             gpu_time += times.total();
-            done += 1;
             if budget.is_zero() || start.elapsed() >= budget {
                 break;
             }
         }
         Ok(StepReport {
-            iterations_done: done,
+            iterations_done: self.iteration() - before,
             iteration: self.iteration(),
             converged: self.iteration() >= target,
             gpu_time,
@@ -1868,6 +1894,10 @@ impl Technique for Irradiance {
 
     fn output(&self) -> &wgpu::Buffer {
         self.base.bindings().accum
+    }
+
+    fn set_part_time(&mut self, part: Option<Duration>) {
+        self.part_time = part;
     }
 
     /// Image-sized rounds of block renders since the picture restarted.

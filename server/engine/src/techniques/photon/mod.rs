@@ -20,6 +20,13 @@
 //!
 //! A camera edit keeps the photons (they do not depend on the camera) and gathers again.
 //!
+//! - A progressive pass's gather (and a camera edit's) runs as parts over the list of
+//!   segments, one submission each of about `GATHER_PART_TIME` (`GatherInProgress`), so that
+//!   `step` returns between them and an edit waits for a part, not for the gather (~9 s at
+//!   512² on lavapipe). Segments are independent, so the parts give the same bits as one
+//!   dispatch. An edit that needs the segments (a TF edit's update) finishes the gather
+//!   first; one that replaces them (camera, lights) drops it.
+//!
 //! `census` counts a full recompute's work per record (benchmarks): compared between two TFs
 //! it bounds what any bit-exact update between them can save.
 
@@ -140,7 +147,31 @@ struct Round {
     input: u32,
     budget: u32,
     stride: u32,
+    /// The first list slot of this dispatch (a part of the round).
+    first: u32,
 }
+
+/// A gather under way (`begin_gather`): the round it is in and the list slots of that round
+/// dispatched so far.
+#[derive(Debug, Clone, Copy)]
+struct GatherInProgress {
+    mode: u32,
+    query: Query,
+    /// Which half of the segment list this round reads.
+    input: u32,
+    /// Rounds completed.
+    rounds: u32,
+    /// Segments this round's list holds (0: the gather is done; it composites next).
+    listed: u32,
+    /// List slots of this round dispatched so far.
+    next: u32,
+}
+
+/// A part of a long gather takes about this long (one submission).
+const GATHER_PART_TIME: Duration = Duration::from_millis(40);
+
+/// List slots of a gather's first part, before the gather's rate is known.
+const FIRST_PART_SLOTS: u32 = 16384;
 
 /// What one submission's uniforms select besides the edit: the mode, the paths a trace
 /// dispatch covers, the gather round and the grid the grid kernels build.
@@ -459,6 +490,15 @@ pub struct Photon {
     last_uniforms: Cell<PhotonUniforms>,
     /// Whether the full pass being dispatched counts its work (`census`).
     census: Cell<bool>,
+    /// The gather under way, if any; `step` carries it on in parts.
+    gathering: Option<GatherInProgress>,
+    /// Passes the composite in the output holds for the current camera (`iteration`): the
+    /// passes in the map once their gather is done, 0 while a camera edit's gather runs.
+    shown: u32,
+    /// Gather list slots per second of the last part (sizes the next part).
+    gather_rate: Option<f64>,
+    /// Slots per part set by `fix_gather_part` instead of the measured rate.
+    fixed_part: Option<u32>,
 }
 
 impl Photon {
@@ -586,6 +626,10 @@ impl Photon {
             records_grid_behind: Cell::new(false),
             last_uniforms: Cell::new(bytemuck::Zeroable::zeroed()),
             census: Cell::new(false),
+            gathering: None,
+            shown: 0,
+            gather_rate: None,
+            fixed_part: None,
         };
         technique.write_tf(engine, scene);
         technique.write_emitters(engine, scene);
@@ -707,7 +751,7 @@ impl Photon {
             scatter_capacity: self.budget.scatter_capacity as u32,
             scatter_samples: self.budget.scatter_samples as u32,
             census: self.census.get() as u32,
-            pad0: 0,
+            round_first: round.first,
             pad1: 0,
             pad2: 0,
         };
@@ -780,7 +824,7 @@ impl Photon {
     /// Rebuilds the grid over every record (and, in MODE_UPDATE, the grid over the changes),
     /// gathers segments (all in MODE_FULL, stale ones in MODE_UPDATE; `gather_mark` lists
     /// them so that the gather's SIMD lanes all work) in rounds within the device's loop
-    /// limit, and composites.
+    /// limit, and composites. Does not wait.
     fn grid_and_gather(
         &mut self,
         engine: &Engine,
@@ -788,12 +832,31 @@ impl Photon {
         mode: u32,
         query: Query,
     ) -> Result<(), EngineError> {
+        self.begin_gather(engine, scene, mode, query)?;
+        self.finish_gather(engine, scene)
+    }
+
+    /// Carries a gather under way to its end (composite included), at once.
+    fn finish_gather(&mut self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
+        while !self.gather_part(engine, scene, u32::MAX)? {}
+        Ok(())
+    }
+
+    /// The first half of `grid_and_gather`: marks and lists the segments to gather and builds
+    /// the grids (a gather under way is dropped); `gather_part` then gathers them.
+    fn begin_gather(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        mode: u32,
+        query: Query,
+    ) -> Result<(), EngineError> {
+        self.gathering = None;
         let pass = &engine.photon;
         let bg = &self.bind_group;
         let records = self.passes * self.params.photons_per_pass * self.params.bounces;
         let pixels = self.width * self.height;
         let segments = pixels * self.params.segments;
-        let lane_budget = self.round_budget(engine);
         let mut grids = Vec::new();
         let mut encoder = Self::encoder(engine, "photon gather mark");
         self.write_uniforms(
@@ -858,63 +921,101 @@ impl Photon {
             self.build_grid(&mut encoder, pass, items);
             engine.gpu.queue.submit([encoder.finish()]);
         }
-        let mut listed = self.counter(engine, COUNTER_LIST)?;
-        let lanes = engine.gpu.info.subgroup_max_size.clamp(1, 64);
-        let mut rounds = 0;
-        let mut input = 0;
-        while listed > 0 {
-            let output = 1 - input;
+        let listed = self.counter(engine, COUNTER_LIST)?;
+        self.gathering = Some(GatherInProgress {
+            mode,
+            query,
+            input: 0,
+            rounds: 0,
+            listed,
+            next: 0,
+        });
+        Ok(())
+    }
+
+    /// Gathers at most `max_slots` more segments of the gather under way (one submission; a
+    /// round's last part reads the next round's list, a blocking read, when the device's loop
+    /// limit made rounds), then, once no segment is left, composites. Returns whether the
+    /// gather is done (true also when none was under way). Does not wait otherwise.
+    fn gather_part(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        max_slots: u32,
+    ) -> Result<bool, EngineError> {
+        let Some(mut gathering) = self.gathering.take() else {
+            return Ok(true);
+        };
+        if gathering.listed > 0 {
+            let lane_budget = self.round_budget(engine);
+            let lanes = engine.gpu.info.subgroup_max_size.clamp(1, 64);
+            let output = 1 - gathering.input;
             // The segments left after a round are the heaviest: each further round gives them
             // twice the budget on half as many lanes per SIMD batch, down to one lane.
             let stride = if lane_budget < u32::MAX {
-                (1u32 << rounds.min(6)).min(lanes)
+                (1u32 << gathering.rounds.min(6)).min(lanes)
             } else {
                 1
             };
             let budget = lane_budget.saturating_mul(stride);
+            let slots = (gathering.listed - gathering.next).min(max_slots.max(1));
             let round = Round {
-                input,
+                input: gathering.input,
                 budget,
                 stride,
+                first: gathering.next,
             };
             let dispatch = Dispatch {
-                mode,
+                mode: gathering.mode,
                 round,
                 ..Dispatch::default()
             };
-            self.write_uniforms(engine, scene, query, dispatch);
-            engine.gpu.queue.write_buffer(
-                &self.counters,
-                (COUNTER_LIST as u64 + output as u64) * 4,
-                bytemuck::bytes_of(&0u32),
-            );
+            self.write_uniforms(engine, scene, gathering.query, dispatch);
+            if gathering.next == 0 {
+                engine.gpu.queue.write_buffer(
+                    &self.counters,
+                    (COUNTER_LIST as u64 + output as u64) * 4,
+                    bytemuck::bytes_of(&0u32),
+                );
+            }
             let mut encoder = Self::encoder(engine, "photon gather");
             dispatch_linear(
                 &mut encoder,
                 "photon gather",
-                &pass.gather,
-                bg,
-                listed * stride,
+                &engine.photon.gather,
+                &self.bind_group,
+                slots * stride,
             );
             engine.gpu.queue.submit([encoder.finish()]);
-            rounds += 1;
-            if budget == u32::MAX {
-                break;
+            gathering.next += slots;
+            if gathering.next >= gathering.listed {
+                gathering.rounds += 1;
+                gathering.next = 0;
+                gathering.listed = if budget == u32::MAX {
+                    0
+                } else {
+                    self.counter(engine, COUNTER_LIST + output as usize)?
+                };
+                gathering.input = output;
             }
-            listed = self.counter(engine, COUNTER_LIST + output as usize)?;
-            input = output;
+            if gathering.listed > 0 {
+                self.gathering = Some(gathering);
+                return Ok(false);
+            }
         }
-        self.gather_rounds = rounds;
+        self.gather_rounds = gathering.rounds;
+        let pixels = self.width * self.height;
         let mut encoder = Self::encoder(engine, "photon composite");
         dispatch_linear(
             &mut encoder,
             "photon composite",
-            &pass.composite,
-            bg,
+            &engine.photon.composite,
+            &self.bind_group,
             pixels,
         );
         engine.gpu.queue.submit([encoder.finish()]);
-        Ok(())
+        self.shown = self.passes;
+        Ok(true)
     }
 
     /// The delta scatter (photon_scatter.wgsl) over the `slots` segments gather_mark gave it and
@@ -1084,15 +1185,43 @@ impl Photon {
         engine.gpu.lane_loop_budget().unwrap_or(u32::MAX)
     }
 
-    /// One progressive pass: more photons, then every segment gathered from all of them.
-    fn add_pass(&mut self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
+    /// Gathers `slots` list slots per part of `step`'s gathers, whatever they take: for tests
+    /// of the parts, which otherwise only long gathers take.
+    pub fn fix_gather_part(&mut self, slots: u32) {
+        self.fixed_part = Some(slots.max(1));
+    }
+
+    /// Starts one progressive pass: more photons, then (`gather_part`) every segment gathered
+    /// from all of them.
+    fn begin_pass(&mut self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
         let p = self.params.photons_per_pass;
         let offset = self.passes * p;
         self.passes += 1;
         self.write_scene(engine, scene)?;
         self.trace(engine, scene, MODE_FULL, offset, p, Query::default());
-        self.grid_and_gather(engine, scene, MODE_FULL, Query::default())?;
         self.photons_traced += p as u64;
+        self.begin_gather(engine, scene, MODE_FULL, Query::default())
+    }
+
+    /// Gathers the next part of the gather under way, sized to `GATHER_PART_TIME` by the last
+    /// part's rate, and waits for it.
+    fn gather_next_part(&mut self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
+        let slots = match (self.fixed_part, self.gather_rate) {
+            (Some(slots), _) => slots,
+            (None, Some(rate)) => {
+                (rate * GATHER_PART_TIME.as_secs_f64()).clamp(1.0, u32::MAX as f64) as u32
+            }
+            (None, None) => FIRST_PART_SLOTS,
+        };
+        let before = self.gathering.map_or(0, |g| g.listed - g.next);
+        let started = Instant::now();
+        self.gather_part(engine, scene, slots)?;
+        engine.gpu.wait_idle()?;
+        let took = started.elapsed().as_secs_f64();
+        // A part that ended a round (a read-back, the composite) says less about the rate.
+        if slots < before && took > 0.0 {
+            self.gather_rate = Some(slots as f64 / took);
+        }
         Ok(())
     }
 
@@ -1127,6 +1256,7 @@ impl Photon {
         passes: u32,
         timed: bool,
     ) -> Result<(Duration, Duration), EngineError> {
+        self.gathering = None;
         self.passes = passes.min(self.capacity);
         self.write_tf(engine, scene);
         self.write_emitters(engine, scene);
@@ -1209,6 +1339,15 @@ impl Photon {
         scene: &Scene,
         old_tf: &TransferFunction,
     ) -> Result<UpdateReport, EngineError> {
+        // A full gather under way (a pass's, a camera edit's) gathers every segment anyway: it
+        // starts again after the photons' update, with the new TF, instead of ending with the
+        // old one for the update to correct (seconds at 512² on a software adapter). Any other
+        // update starts from segments of the old TF: a gather under way ends first (with the
+        // old TF's table, still bound).
+        let regather = self.gathering.is_some_and(|g| g.mode == MODE_FULL);
+        if !regather {
+            self.finish_gather(engine, scene)?;
+        }
         let query_historygram = query_historygram(old_tf, &scene.tf);
         self.write_tf(engine, scene);
         let paths = self.passes * self.params.photons_per_pass;
@@ -1255,6 +1394,25 @@ impl Photon {
         self.write_scene(engine, scene)?;
         let listed = self.list_retraced(engine, scene, paths, query)?;
         self.trace(engine, scene, MODE_UPDATE, 0, listed, query);
+        if regather {
+            let words = self.counter_words(engine)?;
+            self.begin_gather(engine, scene, MODE_FULL, Query::default())?;
+            self.shown = 0;
+            let report = UpdateReport {
+                paths: paths as u64,
+                paths_retraced: words[COUNTER_RETRACED].saturating_sub(words[COUNTER_RECOLOURED])
+                    as u64,
+                paths_recoloured: words[COUNTER_RECOLOURED] as u64,
+                records_changed: words[COUNTER_CHANGED] as u64,
+                segments,
+                segments_recomputed: segments,
+                changes: words[COUNTER_CHANGES] as u64,
+                ..UpdateReport::default()
+            };
+            self.photons_traced += report.paths_retraced;
+            self.last_update = Some(report);
+            return Ok(report);
+        }
         if self.params.invalidation == Invalidation::DirtyCells && self.budget.scatter_capacity > 0
         {
             let changes = self.counter(engine, COUNTER_CHANGES)? as u64;
@@ -1423,15 +1581,19 @@ impl Technique for Photon {
                 self.update_tf(engine, scene, old)?;
             }
             Change::Camera => {
-                // Photons do not depend on the camera: gather again.
+                // Photons do not depend on the camera: gather again (in parts, by `step`); a
+                // gather under way, of the old view, is dropped.
+                self.shown = 0;
                 if self.passes > 0 {
                     self.write_scene(engine, scene)?;
-                    self.grid_and_gather(engine, scene, MODE_FULL, Query::default())?;
+                    self.begin_gather(engine, scene, MODE_FULL, Query::default())?;
                 }
             }
             Change::Lights | Change::Params => {
                 self.write_emitters(engine, scene);
+                self.gathering = None;
                 self.passes = 0;
+                self.shown = 0;
             }
             Change::Viewport => {
                 *self = Photon::new(engine, self.volume.clone(), scene, self.params)?;
@@ -1457,20 +1619,24 @@ impl Technique for Photon {
     ) -> Result<StepReport, EngineError> {
         let target = self.target(scene);
         let start = Instant::now();
-        let mut done = 0;
-        while self.passes < target {
-            self.add_pass(engine, scene)?;
-            engine.gpu.wait_idle()?;
-            done += 1;
-            let per_pass = start.elapsed() / done;
-            if budget.is_zero() || start.elapsed() + per_pass > budget {
+        let shown = self.shown;
+        loop {
+            if self.gathering.is_some() {
+                self.gather_next_part(engine, scene)?;
+            } else if self.passes < target {
+                self.begin_pass(engine, scene)?;
+            } else {
+                break;
+            }
+            // A zero budget asks for the next part now.
+            if budget.is_zero() || start.elapsed() >= budget {
                 break;
             }
         }
         Ok(StepReport {
-            iterations_done: done,
-            iteration: self.passes,
-            converged: self.passes >= target,
+            iterations_done: self.shown.saturating_sub(shown),
+            iteration: self.shown,
+            converged: self.gathering.is_none() && self.shown >= target,
             gpu_time: start.elapsed(),
         })
     }
@@ -1479,8 +1645,9 @@ impl Technique for Photon {
         &self.accum
     }
 
+    /// Passes in the picture shown (a pass counts once its gather is done).
     fn iteration(&self) -> u32 {
-        self.passes
+        self.shown
     }
 
     fn target_iterations(&self, scene: &Scene) -> u32 {
@@ -1491,7 +1658,7 @@ impl Technique for Photon {
         let update = self.last_update.unwrap_or_default();
         TechniqueStats {
             name: self.name(),
-            iteration: self.passes,
+            iteration: self.shown,
             memory_bytes: self.budget.total,
             photons_traced: self.photons_traced,
             photons_in_map: self.passes as u64 * self.params.photons_per_pass as u64,
