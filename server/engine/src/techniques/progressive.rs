@@ -190,18 +190,21 @@ impl Progressive {
         self.fixed_bands = true;
     }
 
+    fn encoder(&self, engine: &Engine) -> wgpu::CommandEncoder {
+        engine
+            .gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some(self.estimator.name()),
+            })
+    }
+
     /// Renders the next band of the iteration in progress and waits for it; returns its wall
     /// time (bands are not timed by queries). After the last band the iteration counts and the
     /// next one's band count is chosen.
     fn band(&mut self, engine: &Engine, scene: &Scene) -> Result<Duration, EngineError> {
         let started = Instant::now();
-        let mut encoder =
-            engine
-                .gpu
-                .device
-                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                    label: Some(self.estimator.name()),
-                });
+        let mut encoder = self.encoder(engine);
         self.encode_band(engine, scene, &mut encoder)?;
         engine.gpu.queue.submit([encoder.finish()]);
         engine.gpu.wait_idle()?;
@@ -370,13 +373,7 @@ impl Technique for Progressive {
                     .gpu
                     .queue
                     .write_buffer(&self.scene_buf, 0, bytemuck::bytes_of(&uniforms));
-                let mut encoder =
-                    engine
-                        .gpu
-                        .device
-                        .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                            label: Some(self.estimator.name()),
-                        });
+                let mut encoder = self.encoder(engine);
                 let last = i + 1 == batch;
                 let writes = self.timer.as_ref().and_then(|t| t.writes(i == 0, last));
                 self.estimator.pass(engine).encode(

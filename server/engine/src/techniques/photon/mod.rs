@@ -183,6 +183,20 @@ struct Dispatch {
     grid_pass: u32,
 }
 
+/// An update's photon side from its counter words (the segments' side is the caller's).
+fn photons_report(words: &[u32], paths: u32, segments: u64) -> UpdateReport {
+    UpdateReport {
+        paths: paths as u64,
+        // trace_mark lists both kinds; the trace counts the recoloured ones.
+        paths_retraced: words[COUNTER_RETRACED].saturating_sub(words[COUNTER_RECOLOURED]) as u64,
+        paths_recoloured: words[COUNTER_RECOLOURED] as u64,
+        records_changed: words[COUNTER_CHANGED] as u64,
+        segments,
+        changes: words[COUNTER_CHANGES] as u64,
+        ..UpdateReport::default()
+    }
+}
+
 /// The bins a TF edit changed (widened, see `update_tf`): any property, and opacity alone.
 #[derive(Debug, Clone, Copy, Default)]
 struct Query {
@@ -1398,20 +1412,10 @@ impl Photon {
             let words = self.counter_words(engine)?;
             self.begin_gather(engine, scene, MODE_FULL, Query::default())?;
             self.shown = 0;
-            let report = UpdateReport {
-                paths: paths as u64,
-                paths_retraced: words[COUNTER_RETRACED].saturating_sub(words[COUNTER_RECOLOURED])
-                    as u64,
-                paths_recoloured: words[COUNTER_RECOLOURED] as u64,
-                records_changed: words[COUNTER_CHANGED] as u64,
-                segments,
+            return Ok(self.record_update(UpdateReport {
                 segments_recomputed: segments,
-                changes: words[COUNTER_CHANGES] as u64,
-                ..UpdateReport::default()
-            };
-            self.photons_traced += report.paths_retraced;
-            self.last_update = Some(report);
-            return Ok(report);
+                ..photons_report(&words, paths, segments)
+            }));
         }
         if self.params.invalidation == Invalidation::DirtyCells && self.budget.scatter_capacity > 0
         {
@@ -1431,23 +1435,20 @@ impl Photon {
             words[COUNTER_SPATIAL + 2 * axis] as u64
                 | (words[COUNTER_SPATIAL + 2 * axis + 1] as u64) << 32
         };
-        let report = UpdateReport {
-            paths: paths as u64,
-            // trace_mark lists both kinds; the trace counts the recoloured ones.
-            paths_retraced: words[COUNTER_RETRACED].saturating_sub(words[COUNTER_RECOLOURED])
-                as u64,
-            paths_recoloured: words[COUNTER_RECOLOURED] as u64,
-            records_changed: words[COUNTER_CHANGED] as u64,
-            segments,
+        Ok(self.record_update(UpdateReport {
             segments_recomputed: words[COUNTER_SEGMENTS] as u64,
             segments_delta: words[COUNTER_DELTA] as u64,
             segments_scattered: self.scattered as u64,
-            changes: words[COUNTER_CHANGES] as u64,
             spatial: [mask(0), mask(1), mask(2)],
-        };
+            ..photons_report(&words, paths, segments)
+        }))
+    }
+
+    /// Keeps `report` as the last update's and counts its retraced photons.
+    fn record_update(&mut self, report: UpdateReport) -> UpdateReport {
         self.photons_traced += report.paths_retraced;
         self.last_update = Some(report);
-        Ok(report)
+        report
     }
 
     /// Reads back the photon map, the segments and the picture.
