@@ -122,6 +122,17 @@ pub struct Manylight {
     pub last_update: Option<TfUpdate>,
     /// A TF edit's partial rebuild still being carried out, a few maps per step.
     pending: Option<PendingUpdate>,
+    /// A full rebuild's maps still to build (`begin_rebuild`), a few per step.
+    pending_maps: Option<PendingMaps>,
+}
+
+/// The rest of a full rebuild in `step`: the lights are traced, the maps of slots
+/// `next..count` are still to build.
+struct PendingMaps {
+    next: u32,
+    started: Instant,
+    /// How long tracing the lights took.
+    vls: Duration,
 }
 
 /// The rest of a TF edit's partial rebuild.
@@ -300,6 +311,7 @@ impl Manylight {
             tf_only: false,
             last_build: BuildTimes::default(),
             last_update: None,
+            pending_maps: None,
             pending: None,
         };
         technique.write_params(engine, scene);
@@ -387,9 +399,83 @@ impl Manylight {
         scene: &Scene,
         paths: Option<u64>,
     ) -> Result<BuildTimes, EngineError> {
+        let vls = self.trace_lights(engine, scene, paths)?;
+        let started = Instant::now();
+        self.build_maps(engine, scene, None)?;
+        self.last_build = BuildTimes {
+            vls,
+            avsm: started.elapsed(),
+        };
+        Ok(self.last_build)
+    }
+
+    /// `rebuild` in parts, for `step`: traces the lights now and leaves their maps to
+    /// `advance_maps` (an edit then waits for a few maps, not for all: ~3 s at 512² on
+    /// lavapipe). Until the last is built no iteration is rendered.
+    fn begin_rebuild(&mut self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
+        let vls = self.trace_lights(engine, scene, None)?;
+        // Every slot's map words start cleared, as a whole build's do.
+        engine.gpu.queue.write_buffer(
+            &self.buffers.avsm_hist,
+            0,
+            &vec![0u8; self.buffers.avsm_hist.size() as usize],
+        );
+        self.pending_maps = Some(PendingMaps {
+            next: 0,
+            started: Instant::now(),
+            vls,
+        });
+        Ok(())
+    }
+
+    /// Builds at most `max_maps` more maps of the full rebuild under way. Blocks.
+    fn advance_maps(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        max_maps: usize,
+    ) -> Result<(), EngineError> {
+        let Some(mut pending) = self.pending_maps.take() else {
+            return Ok(());
+        };
+        let end = (pending.next as usize + max_maps.max(1)).min(self.count as usize) as u32;
+        let slots: Vec<u32> = (pending.next..end).collect();
+        if !slots.is_empty() {
+            self.build_maps(engine, scene, Some(&slots))?;
+        }
+        engine.gpu.wait_idle()?;
+        pending.next = end;
+        if pending.next < self.count {
+            self.pending_maps = Some(pending);
+        } else {
+            self.last_build = BuildTimes {
+                vls: pending.vls,
+                avsm: pending.started.elapsed(),
+            };
+        }
+        Ok(())
+    }
+
+    /// Maps a step builds: half the budget at the last build's rate, at least
+    /// `MIN_MAPS_PER_STEP`.
+    fn maps_per_step(&self, budget: Duration) -> usize {
+        let per_map = self.last_build.avsm.as_secs_f64() / self.count.max(1) as f64;
+        let maps = (0.5 * budget.as_secs_f64() / per_map.max(1e-6)) as usize;
+        maps.max(MIN_MAPS_PER_STEP)
+    }
+
+    /// The lights of a rebuild (see `rebuild_paths`), traced and uploaded; their maps are
+    /// the caller's. Returns how long it took.
+    fn trace_lights(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        paths: Option<u64>,
+    ) -> Result<Duration, EngineError> {
         // The passes read the scene uniforms of the next iteration.
         self.base.encode_uniforms(engine, scene)?;
         self.pending = None;
+        self.pending_maps = None;
         self.built_density = scene.params.density_scale;
         self.built_g = scene.params.g;
         self.built_tf = scene.tf.clone();
@@ -435,15 +521,8 @@ impl Manylight {
         self.built_lights = lights;
         self.weighted_g = scene.params.g;
         self.write_params(engine, scene);
-        let vls = started.elapsed();
-        let started = Instant::now();
-        self.build_maps(engine, scene, None)?;
-        self.last_build = BuildTimes {
-            vls,
-            avsm: started.elapsed(),
-        };
         self.stale = false;
-        Ok(self.last_build)
+        Ok(started.elapsed())
     }
 
     /// Traces one batch of light paths: `BATCH_PATHS` from `first_path`, or the listed ones.
@@ -579,10 +658,12 @@ impl Manylight {
     fn begin_tf_update(&mut self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
         let started = Instant::now();
         // A previous edit's slots still to be carried out hold lights of an older TF: finish
-        // it first, so that every slot is of `built_tf`.
+        // it first, so that every slot is of `built_tf` (and a full rebuild's maps, whose
+        // map historygrams the update reads).
         while self.pending.is_some() {
             self.advance_tf_update(engine, scene, usize::MAX)?;
         }
+        self.advance_maps(engine, scene, usize::MAX)?;
         if scene.params.density_scale != self.built_density || scene.params.g != self.built_g {
             return self.full_update(engine, scene, started);
         }
@@ -883,6 +964,7 @@ impl Manylight {
         if self.stale {
             self.rebuild(engine, scene)?;
         }
+        self.advance_maps(engine, scene, usize::MAX)?;
         self.base.encode_uniforms(engine, scene)?;
         engine.gpu.wait_idle()?;
         let started = Instant::now();
@@ -1033,13 +1115,14 @@ impl Technique for Manylight {
                 if self.count > 0 && self.pending.is_none() && self.weighted_g == self.built_g {
                     self.reweight_for_tf(engine, old, &scene.tf);
                 }
-                self.preview_pending = self.count > 0;
+                // No immediate response from maps a full rebuild has not finished.
+                self.preview_pending = self.count > 0 && self.pending_maps.is_none();
                 self.tf_only = !self.stale || self.tf_only;
                 self.stale = true;
             }
             // New lights or parameters: new light paths and shadow maps.
             Change::Lights | Change::Params => {
-                self.preview_pending = self.count > 0;
+                self.preview_pending = self.count > 0 && self.pending_maps.is_none();
                 self.tf_only = false;
                 self.stale = true;
             }
@@ -1076,25 +1159,27 @@ impl Technique for Manylight {
             });
         }
         if self.stale && self.base.iteration() < target {
-            if self.tf_only && self.count > 0 {
+            if self.tf_only && self.count > 0 && self.pending_maps.is_none() {
                 self.begin_tf_update(engine, scene)?;
             } else {
-                self.rebuild(engine, scene)?;
+                self.begin_rebuild(engine, scene)?;
             }
             self.tf_only = false;
             self.base.restart();
         }
         let mut done = 0;
         loop {
-            if self.pending.is_some() {
+            if self.pending_maps.is_some() {
+                // A full rebuild's maps, in parts; the picture waits for the last.
+                self.advance_maps(engine, scene, self.maps_per_step(budget))?;
+                self.base.restart();
+            } else if self.pending.is_some() {
                 // A few maps per step, sized to half the budget by the last build's rate. The
                 // picture waits for the last of them (the immediate response stays on screen):
                 // an iteration between parts would restart with each change of the lights, and
                 // on a slow adapter one iteration costs more than the whole rebuild (a manylight
                 // iteration at 512² takes ~6 s on lavapipe, a TF edit's maps ~2 s).
-                let per_map = self.last_build.avsm.as_secs_f64() / self.count.max(1) as f64;
-                let maps = (0.5 * budget.as_secs_f64() / per_map.max(1e-6)) as usize;
-                self.advance_tf_update(engine, scene, maps.max(MIN_MAPS_PER_STEP))?;
+                self.advance_tf_update(engine, scene, self.maps_per_step(budget))?;
                 self.base.restart();
             } else if self.base.iteration() < target {
                 if self.iterate_band(engine, scene)? {
@@ -1110,7 +1195,9 @@ impl Technique for Manylight {
         Ok(StepReport {
             iterations_done: done,
             iteration: self.base.iteration(),
-            converged: self.pending.is_none() && self.base.iteration() >= target,
+            converged: self.pending.is_none()
+                && self.pending_maps.is_none()
+                && self.base.iteration() >= target,
             gpu_time: started.elapsed(),
         })
     }
@@ -1118,7 +1205,7 @@ impl Technique for Manylight {
     /// While a TF edit's maps are still being rebuilt the picture is not final, whatever
     /// its iteration count.
     fn target_iterations(&self, scene: &Scene) -> u32 {
-        if self.pending.is_some() {
+        if self.pending.is_some() || self.pending_maps.is_some() {
             scene.target_iterations.max(self.base.iteration() + 1)
         } else {
             scene.target_iterations
