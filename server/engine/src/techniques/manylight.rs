@@ -133,6 +133,8 @@ struct PendingMaps {
     started: Instant,
     /// How long tracing the lights took.
     vls: Duration,
+    /// How long the maps built so far took (their rate sizes the next part).
+    building: Duration,
 }
 
 /// The rest of a TF edit's partial rebuild.
@@ -424,6 +426,7 @@ impl Manylight {
             next: 0,
             started: Instant::now(),
             vls,
+            building: Duration::ZERO,
         });
         Ok(())
     }
@@ -440,10 +443,12 @@ impl Manylight {
         };
         let end = (pending.next as usize + max_maps.max(1)).min(self.count as usize) as u32;
         let slots: Vec<u32> = (pending.next..end).collect();
+        let started = Instant::now();
         if !slots.is_empty() {
             self.build_maps(engine, scene, Some(&slots))?;
         }
         engine.gpu.wait_idle()?;
+        pending.building += started.elapsed();
         pending.next = end;
         if pending.next < self.count {
             self.pending_maps = Some(pending);
@@ -456,12 +461,17 @@ impl Manylight {
         Ok(())
     }
 
-    /// Maps a step builds: half the budget at the last build's rate, at least
-    /// `MIN_MAPS_PER_STEP`.
+    /// Maps a step builds: half the budget at the rate of the build under way, else of the
+    /// last one, at least `MIN_MAPS_PER_STEP` (and that many while no rate is known).
     fn maps_per_step(&self, budget: Duration) -> usize {
-        let per_map = self.last_build.avsm.as_secs_f64() / self.count.max(1) as f64;
-        let maps = (0.5 * budget.as_secs_f64() / per_map.max(1e-6)) as usize;
-        maps.max(MIN_MAPS_PER_STEP)
+        let per_map = match &self.pending_maps {
+            Some(p) if p.next > 0 => p.building.as_secs_f64() / p.next as f64,
+            _ => self.last_build.avsm.as_secs_f64() / self.count.max(1) as f64,
+        };
+        if per_map <= 0.0 {
+            return MIN_MAPS_PER_STEP;
+        }
+        ((0.5 * budget.as_secs_f64() / per_map) as usize).max(MIN_MAPS_PER_STEP)
     }
 
     /// The lights of a rebuild (see `rebuild_paths`), traced and uploaded; their maps are
