@@ -24,8 +24,9 @@
 //!   segments, one submission each of about `GATHER_PART_TIME` (`GatherInProgress`), so that
 //!   `step` returns between them and an edit waits for a part, not for the gather (~9 s at
 //!   512² on lavapipe). Segments are independent, so the parts give the same bits as one
-//!   dispatch. An edit that needs the segments (a TF edit's update) finishes the gather
-//!   first; one that replaces them (camera, lights) drops it.
+//!   dispatch. A camera or light edit drops a gather under way; a TF edit updates the
+//!   photons and then restarts a full gather under way with the new TF, and finishes any
+//!   other gather first (its update starts from the old TF's segments).
 //!
 //! `census` counts a full recompute's work per record (benchmarks): compared between two TFs
 //! it bounds what any bit-exact update between them can save.
