@@ -1187,8 +1187,8 @@ impl Technique for Manylight {
                 // A few maps per step, sized to half the budget by the last build's rate. The
                 // picture waits for the last of them (the immediate response stays on screen):
                 // an iteration between parts would restart with each change of the lights, and
-                // on a slow adapter one iteration costs more than the whole rebuild (a manylight
-                // iteration at 512² takes ~6 s on lavapipe, a TF edit's maps ~2 s).
+                // on a slow adapter one iteration costs more than the whole rebuild (at 512² on
+                // lavapipe an iteration takes 6–9 s, all 256 maps ~3 s).
                 self.advance_tf_update(engine, scene, self.maps_per_step(budget))?;
                 self.base.restart();
             } else if self.base.iteration() < target {
