@@ -417,11 +417,7 @@ impl Manylight {
     fn begin_rebuild(&mut self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
         let vls = self.trace_lights(engine, scene, None)?;
         // Every slot's map words start cleared, as a whole build's do.
-        engine.gpu.queue.write_buffer(
-            &self.buffers.avsm_hist,
-            0,
-            &vec![0u8; self.buffers.avsm_hist.size() as usize],
-        );
+        self.clear_map_hists(engine);
         self.pending_maps = Some(PendingMaps {
             next: 0,
             started: Instant::now(),
@@ -429,6 +425,15 @@ impl Manylight {
             building: Duration::ZERO,
         });
         Ok(())
+    }
+
+    /// Clears every slot's map historygram words (a build of all maps starts from them).
+    fn clear_map_hists(&self, engine: &Engine) {
+        engine.gpu.queue.write_buffer(
+            &self.buffers.avsm_hist,
+            0,
+            &vec![0u8; self.buffers.avsm_hist.size() as usize],
+        );
     }
 
     /// Builds at most `max_maps` more maps of the full rebuild under way. Blocks.
@@ -589,11 +594,7 @@ impl Manylight {
     ) -> Result<(), EngineError> {
         let zero = [0u32; 2];
         match slots {
-            None => engine.gpu.queue.write_buffer(
-                &self.buffers.avsm_hist,
-                0,
-                &vec![0u8; self.buffers.avsm_hist.size() as usize],
-            ),
+            None => self.clear_map_hists(engine),
             Some(list) => {
                 for &slot in list {
                     engine.gpu.queue.write_buffer(
