@@ -72,6 +72,25 @@ impl TestServer {
         format!("ws://{}/ws", self.addr)
     }
 
+    /// `GET path` through the router: status and body text.
+    pub async fn get(&self, path: &str) -> (u16, String) {
+        use http_body_util::BodyExt;
+        use tower::ServiceExt;
+        let request = axum::http::Request::get(path)
+            .body(axum::body::Body::empty())
+            .expect("request");
+        let response = voxlight_server::app(self.state.clone())
+            .oneshot(request)
+            .await
+            .expect("route");
+        let status = response.status().as_u16();
+        let body = response.into_body().collect().await.expect("body");
+        (
+            status,
+            String::from_utf8_lossy(&body.to_bytes()).into_owned(),
+        )
+    }
+
     /// `GET /metrics`, as text.
     pub async fn metrics(&self) -> String {
         use http_body_util::BodyExt;

@@ -6,7 +6,7 @@
 // edit (last writer wins, the server tells everyone who edited with `edited`), and a dropped
 // connection rejoins the same session.
 
-import { Connection, PROTOCOL_VERSION, wsUrlFor } from './connection.js';
+import { Connection, PROTOCOL_VERSION, routeFolders, wsUrlFor } from './connection.js';
 import * as Cam from './camera.js';
 import { TfEditor } from './tf-editor.js';
 import { PRESETS, presetToTf, clipTf } from './presets.js';
@@ -164,7 +164,16 @@ let helloError = '';
 /** Viewer ids this page has had (its earlier connections), so their leaving is not announced. */
 const ownIds = new Set();
 
-const conn = new Connection(params.get('ws') || wsUrlFor(location), () => {
+/**
+ * Behind a router that spreads sessions over several server processes, the route prefix of
+ * the one holding our session (from `welcome`); viewers, the share link and reconnects use it.
+ * An explicit ?ws= URL turns the routing off.
+ */
+const explicitWs = params.get('ws');
+/** The server process told us it drains: at its `bye` we reopen the view at the root. */
+let serverDraining = false;
+
+const conn = new Connection(explicitWs || wsUrlFor(location), () => {
   /** @type {any} */
   vx.viewport = computeViewport();
   const hello = { type: 'hello', protocol: PROTOCOL_VERSION, viewport: vx.viewport, name: vx.name, max_in_flight: MAX_IN_FLIGHT };
@@ -216,6 +225,8 @@ conn.addEventListener('welcome', (/** @type {any} */ e) => {
   $('st-adapter').textContent = `${w.adapter || '?'} · server ${w.server_version || '?'} · session ${String(w.session || '').slice(0, 8)}`;
   fillTechniques(vx.techniques);
   setViewers(w.viewers, false);
+  serverDraining = false;
+  followRoute(w.route);
   setSessionInUrl(w.session);
   // A fresh session although this page had one: ours expired while we were away. Put back what
   // this page showed (its own and others' edits alike).
@@ -299,6 +310,14 @@ conn.addEventListener('message', (/** @type {any} */ e) => {
         toast('error', err.code, `${err.message}; retrying`);
         break;
       }
+      if (!conn.ready && (err.code === 'at_capacity' || err.code === 'draining')) {
+        // This server process takes no new session. Behind a router, the root finds one that
+        // does (at once); otherwise keep trying with backoff.
+        if (toDeploymentRoot()) conn.reconnectSoon(0);
+        else learnRoute();
+        toast('error', err.code, `${err.message}; retrying`);
+        break;
+      }
       // The failed edit will not be echoed: stop waiting for our own echoes, and show the
       // technique and options the session kept (a refused switch or option changes nothing).
       if (conn.ready) {
@@ -311,8 +330,18 @@ conn.addEventListener('message', (/** @type {any} */ e) => {
       toast('error', err.code, err.message);
       break;
     }
+    case 'draining':
+      serverDraining = true;
+      toast('info', 'server restarting', String(m.message || `this session ends in ${m.seconds_left} s`));
+      break;
     case 'bye':
-      showOverlay('Server is shutting down', String(m.reason || ''), false);
+      if (serverDraining && toDeploymentRoot()) {
+        // The router's root gives us another process; the welcome there restores our view.
+        conn.reconnectSoon(0);
+        showOverlay('Moving to another server', String(m.reason || ''), false);
+      } else {
+        showOverlay('Server is shutting down', String(m.reason || ''), false);
+      }
       break;
     default:
       break; // newer servers may send more; ignore what we do not know
@@ -527,6 +556,58 @@ function renderViewers() {
 
 function namesOfOthers() {
   return vx.viewers.filter((v) => !vx.viewer || v.id !== vx.viewer.id).map((v) => v.name).join(', ');
+}
+
+/** The route prefix of the process holding our session (`welcome.route`), '' without one. */
+let serverRoute = '';
+
+/**
+ * Follows `welcome.route`: the page (its URL, share link) and the connection move under the
+ * prefix that reaches the process holding our session, so reconnects and joiners land there.
+ * @param {unknown} route
+ */
+function followRoute(route) {
+  if (explicitWs || typeof route !== 'string' || !route) return;
+  serverRoute = route;
+  const { server } = routeFolders(location.pathname, route);
+  conn.url = wsUrlFor(location, server);
+  const u = new URL(location.href);
+  if (u.pathname !== server) history.replaceState(history.state, '', server + u.search + u.hash);
+}
+
+/**
+ * Points the connection at the deployment's root (any process taking new sessions) and forgets
+ * the session, whose process is full or going away. False when there is no router to ask.
+ */
+function toDeploymentRoot() {
+  if (explicitWs || !serverRoute) return false;
+  const { root } = routeFolders(location.pathname, serverRoute);
+  serverRoute = '';
+  conn.url = wsUrlFor(location, root);
+  joinSession = null;
+  sessionLost = true;
+  const u = new URL(location.href);
+  u.searchParams.delete('session');
+  history.replaceState(history.state, '', root + u.search + u.hash);
+  return true;
+}
+
+/**
+ * A page opened under a process's prefix (an old share link) that was refused before any
+ * welcome: ask that process for its route (`/healthz`), so the next attempt goes to the root.
+ */
+async function learnRoute() {
+  if (explicitWs) return;
+  try {
+    const res = await fetch('./healthz', { cache: 'no-store' });
+    const route = res.ok ? (await res.json()).route : null;
+    if (typeof route === 'string' && location.pathname.startsWith(routeFolders(location.pathname, route).server)) {
+      serverRoute = route;
+      toDeploymentRoot();
+    }
+  } catch {
+    /* no answer: keep retrying here with backoff */
+  }
 }
 
 /** The page URL for a session: ?session=ID, other parameters kept, never a token. */

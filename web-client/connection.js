@@ -44,10 +44,37 @@ export function splitFrame(buf) {
   }
 }
 
-/** The WebSocket URL for a page URL: same host, ws: or wss: matching http: or https:. */
-export function wsUrlFor(loc = window.location) {
+/**
+ * The WebSocket URL for a page URL: same host, ws: or wss: matching http: or https:, `ws` in
+ * the page's folder (so a page under a router's prefix, `/p/3/`, talks to `/p/3/ws`).
+ * @param {{protocol: string, host: string, pathname?: string}} loc
+ * @param {string} [folder] the folder to use instead of the page's
+ */
+export function wsUrlFor(loc = window.location, folder) {
   const proto = loc.protocol === 'https:' ? 'wss:' : 'ws:';
-  return `${proto}//${loc.host}/ws`;
+  return `${proto}//${loc.host}${folder ?? pageFolder(loc.pathname || '/')}ws`;
+}
+
+/** The folder of a page path, with its trailing slash: `/p/3/index.html` → `/p/3/`. */
+export function pageFolder(pathname) {
+  const folder = pathname.replace(/[^/]*$/, '');
+  return folder.startsWith('/') ? folder : `/${folder}`;
+}
+
+/**
+ * Where a deployment of several server processes is reached, given the page's path and the
+ * route prefix the server named in `welcome` (`/p/3/`, stripped by the router): `root` takes
+ * new sessions on any process, `server` reaches the one that holds this session. Without a
+ * route (one process, no router) both are the page's folder.
+ * @param {string} pathname
+ * @param {string | null | undefined} route
+ * @returns {{root: string, server: string}}
+ */
+export function routeFolders(pathname, route) {
+  const folder = pageFolder(pathname);
+  if (!route || !route.startsWith('/') || !route.endsWith('/')) return { root: folder, server: folder };
+  const root = folder.endsWith(route) ? `${folder.slice(0, folder.length - route.length)}/` : folder;
+  return { root, server: `${root}${route.slice(1)}` };
 }
 
 /**

@@ -324,6 +324,12 @@ pub enum ErrorCode {
     /// The GPU failed or was lost.
     Gpu,
     Internal,
+    /// This server holds as many sessions as it may (`--max-sessions`); try again later or
+    /// on another server. Joining an existing session is still possible.
+    AtCapacity,
+    /// This server is draining for a restart or scale-down: it serves its sessions until they
+    /// end but opens no new one; open it at the deployment's root (another server).
+    Draining,
 }
 
 /// Messages from the server to a client.
@@ -347,6 +353,11 @@ pub enum ServerMessage {
         joined: bool,
         /// The scene version `state` shows.
         version: u64,
+        /// The path prefix that reaches this server process directly behind a router that
+        /// spreads new sessions over several (e.g. `/p/3/`): viewers of this session, its
+        /// share link and reconnects must use it. Absent when the server is reached directly.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        route: Option<String>,
     },
     /// A viewer changed the session (last writer wins). Sent to every viewer, the editor
     /// included, in the order the server applied the edits; `edit` is the client message
@@ -382,6 +393,12 @@ pub enum ServerMessage {
     Stats(Stats),
     Error {
         code: ErrorCode,
+        message: String,
+    },
+    /// The server is draining (a restart or scale-down): the session goes on for at most
+    /// `seconds_left`, then `bye`; a viewer can reopen its view at the deployment's root.
+    Draining {
+        seconds_left: u64,
         message: String,
     },
     /// The server is going away.

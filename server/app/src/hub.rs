@@ -288,6 +288,14 @@ impl Hub {
         self.len() == 0
     }
 
+    /// Every live session (e.g. to tell all viewers the server drains).
+    pub fn sessions(&self) -> Vec<Arc<SharedSession>> {
+        self.sessions
+            .lock()
+            .map(|s| s.values().cloned().collect())
+            .unwrap_or_default()
+    }
+
     /// Registers a new session with its first viewer.
     pub fn insert(
         &self,

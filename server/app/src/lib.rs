@@ -11,6 +11,7 @@ pub mod bench_vtk;
 pub mod datasets;
 pub mod encode;
 pub mod hub;
+pub mod lifecycle;
 pub mod loadgen;
 pub mod metrics;
 pub mod offline;
@@ -48,6 +49,15 @@ pub struct AppState {
     pub hub: hub::Hub,
     pub shutdown: CancellationToken,
     pub tracker: TaskTracker,
+    /// Most sessions this process holds (None: no limit but the GPU memory budget).
+    pub max_sessions: Option<usize>,
+    /// The path prefix a router uses to reach this process directly (`/p/3/`), told to
+    /// viewers in `welcome`.
+    pub route_prefix: Option<String>,
+    /// Cancelled when the process starts draining (`lifecycle::drain`).
+    pub draining: CancellationToken,
+    /// When a drain ends at the latest.
+    pub drain_deadline: std::sync::Mutex<Option<tokio::time::Instant>>,
 }
 
 /// What `serve` needs besides a listener.
@@ -70,11 +80,31 @@ pub struct ServerConfig {
     /// The interaction mode (previews while edits stream in); off when unset (`voxlight serve`
     /// turns it on with `Interaction::default()`).
     pub interaction: Option<render_service::Interaction>,
+    /// Most sessions this process holds; the next gets `at_capacity` and `/readyz` turns
+    /// false at it. None: no limit but the GPU memory budget.
+    pub max_sessions: Option<usize>,
+    /// The path prefix under which a router reaches this very process (`/p/3/`, stripped by
+    /// the router); sent to viewers so their share links and reconnects come back here.
+    pub route_prefix: Option<String>,
 }
 
 /// Default global GPU memory budget: 4 GiB, which fits most GPUs that run this (a larger
 /// GPU is told so with `--gpu-memory-mib`).
 pub const DEFAULT_GPU_MEMORY_BUDGET: u64 = 4 << 30;
+
+/// A route prefix is an absolute path ending in `/` of plain path characters.
+fn check_route_prefix(prefix: &str) -> anyhow::Result<()> {
+    let plain = prefix
+        .chars()
+        .all(|c| c.is_ascii_alphanumeric() || "/-_.~".contains(c));
+    if !(prefix.starts_with('/') && prefix.ends_with('/') && plain) || prefix.contains("//") {
+        anyhow::bail!(
+            "route prefix `{prefix}` must be a path like `/p/3/`: starting and ending with `/`, \
+             letters, digits and -_.~ only"
+        );
+    }
+    Ok(())
+}
 
 /// A started server core: the state for `app`, plus the render thread to join at the end.
 pub struct Server {
@@ -101,10 +131,27 @@ impl Server {
         let adapter = engine.gpu.adapter_name();
         let software_renderer = engine.gpu.is_software();
         let max_viewport_pixels = engine.max_viewport_pixels();
+        if let Some(prefix) = &config.route_prefix {
+            check_route_prefix(prefix)?;
+        }
+        if config.max_sessions == Some(0) {
+            anyhow::bail!("max sessions must be at least 1");
+        }
         if software_renderer {
             tracing::warn!(%adapter, "rendering on a software adapter (CPU): expect low frame rates");
         }
         let metrics = Arc::new(metrics::Metrics::default());
+        metrics.session_capacity.store(
+            config.max_sessions.map_or(-1, |m| m as i64),
+            std::sync::atomic::Ordering::Relaxed,
+        );
+        tracing::info!(
+            %adapter,
+            software_renderer,
+            max_sessions = config.max_sessions,
+            route_prefix = config.route_prefix.as_deref(),
+            "GPU adapter opened"
+        );
         let budget = config
             .gpu_memory_budget
             .unwrap_or(DEFAULT_GPU_MEMORY_BUDGET);
@@ -135,6 +182,10 @@ impl Server {
             hub: hub::Hub::new(config.grace_period.unwrap_or(hub::DEFAULT_GRACE_PERIOD)),
             shutdown,
             tracker: TaskTracker::new(),
+            max_sessions: config.max_sessions,
+            route_prefix: config.route_prefix.clone(),
+            draining: CancellationToken::new(),
+            drain_deadline: Default::default(),
         });
         Ok(Self {
             state,

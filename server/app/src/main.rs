@@ -9,8 +9,8 @@ use clap::{Parser, Subcommand};
 use tokio_util::sync::CancellationToken;
 use voxlight_engine::techniques::irradiance::{DEFAULT_BOUNCES, Historygrams};
 use voxlight_server::{
-    Server, ServerConfig, bench, bench_interactive, bench_irradiance, bench_manylight, loadgen,
-    offline,
+    Server, ServerConfig, bench, bench_interactive, bench_irradiance, bench_manylight, lifecycle,
+    loadgen, offline,
 };
 
 #[derive(Parser)]
@@ -69,6 +69,21 @@ enum Command {
         /// refines the still.
         #[arg(long, default_value_t = 250)]
         rest_after_ms: u64,
+        /// Most sessions this process holds (those in their reconnect grace period included);
+        /// the next new one gets `at_capacity` and `/readyz` answers 503. Joining a shared
+        /// session is still allowed.
+        #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..))]
+        max_sessions: u32,
+        /// The path prefix under which a router reaches this very process and strips before
+        /// forwarding (e.g. `/p/3/` for StatefulSet pod 3); told to viewers so their share
+        /// links and reconnects come back to the process that holds their session.
+        #[arg(long)]
+        route_prefix: Option<String>,
+        /// On SIGTERM: seconds the open sessions are still served (no new ones) before every
+        /// viewer gets `bye` and the process exits; it exits earlier once no viewer is left.
+        /// A second SIGTERM or Ctrl-C stops at once.
+        #[arg(long, default_value_t = 300)]
+        drain_timeout_s: u64,
     },
     /// Scripted viewers against a running server: each session has an editor that orbits
     /// the camera and edits the TF, and watchers that join it. Reports input-to-frame
@@ -296,6 +311,9 @@ fn run() -> anyhow::Result<()> {
             gpu_memory_mib,
             interactive_frame_ms,
             rest_after_ms,
+            max_sessions,
+            route_prefix,
+            drain_timeout_s,
         } => {
             if let Some(file) = tokens_file {
                 let text = std::fs::read_to_string(&file)
@@ -324,7 +342,10 @@ fn run() -> anyhow::Result<()> {
                         frame_target: Duration::from_millis(interactive_frame_ms),
                         rest_after: Duration::from_millis(rest_after_ms),
                     }),
+                    max_sessions: Some(max_sessions as usize),
+                    route_prefix,
                 },
+                Duration::from_secs(drain_timeout_s),
             )
         }
         Command::Loadgen {
@@ -611,7 +632,7 @@ fn interactive(
     })
 }
 
-fn serve(listen: SocketAddr, config: ServerConfig) -> anyhow::Result<()> {
+fn serve(listen: SocketAddr, config: ServerConfig, drain_timeout: Duration) -> anyhow::Result<()> {
     let engine = voxlight_engine::Engine::new()?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -624,8 +645,14 @@ fn serve(listen: SocketAddr, config: ServerConfig) -> anyhow::Result<()> {
             .await
             .with_context(|| format!("cannot listen on {listen}"))?;
         tracing::info!("serving http://{}", listener.local_addr()?);
+        let state = server.state.clone();
         tokio::spawn(async move {
             wait_for_signal().await;
+            tracing::info!("SIGTERM or Ctrl-C: draining (again to stop at once)");
+            tokio::select! {
+                _ = lifecycle::drain(&state, drain_timeout) => {}
+                _ = wait_for_signal() => tracing::info!("second signal: stopping now"),
+            }
             tracing::info!("shutting down");
             shutdown.cancel();
         });

@@ -63,8 +63,13 @@ impl Histogram {
 /// Everything `/metrics` reports.
 #[derive(Default)]
 pub struct Metrics {
-    /// Shared sessions alive (with viewers or in their reconnect grace period).
+    /// Shared sessions alive (with viewers or in their reconnect grace period) or being
+    /// opened: the autoscaling signal.
     pub sessions_active: AtomicI64,
+    /// Most sessions this process holds; negative: no limit (rendered as `+Inf`).
+    pub session_capacity: AtomicI64,
+    /// 1 while the process drains (no new sessions).
+    pub draining: AtomicI64,
     pub sessions_total: AtomicU64,
     /// Connected viewers over all sessions.
     pub viewers_active: AtomicI64,
@@ -171,6 +176,23 @@ impl Metrics {
                 value.load(Ordering::Relaxed).to_string(),
             );
         }
+        let capacity = self.session_capacity.load(Ordering::Relaxed);
+        counter(
+            "voxlight_session_capacity",
+            "Most sessions this process holds (+Inf: no limit but GPU memory).",
+            "gauge",
+            if capacity < 0 {
+                "+Inf".to_owned()
+            } else {
+                capacity.to_string()
+            },
+        );
+        counter(
+            "voxlight_draining",
+            "1 while the process drains for a restart or scale-down (no new sessions).",
+            "gauge",
+            self.draining.load(Ordering::Relaxed).to_string(),
+        );
         counter(
             "voxlight_gpu_memory_bytes",
             "GPU memory accounted to sessions and volumes.",
@@ -309,5 +331,10 @@ mod tests {
         assert!(text.contains("voxlight_encode_seconds_count 2"));
         assert!(text.contains("voxlight_frames_encoded_total 2"));
         assert!(text.contains("# TYPE voxlight_viewers_active gauge\nvoxlight_viewers_active 0"));
+        assert!(
+            text.contains("# TYPE voxlight_session_capacity gauge\nvoxlight_session_capacity 0")
+        );
+        m.session_capacity.store(-1, Ordering::Relaxed);
+        assert!(m.render().contains("\nvoxlight_session_capacity +Inf\n"));
     }
 }

@@ -1,6 +1,8 @@
-//! HTTP routes: the embedded web client, `/ws`, `/healthz` and `/api/datasets`.
+//! HTTP routes: the embedded web client, `/ws`, `/healthz` (liveness), `/readyz` (takes new
+//! sessions), `/metrics` and `/api/datasets`.
 
 use std::sync::Arc;
+use std::sync::atomic::Ordering;
 
 use axum::Router;
 use axum::extract::ws::WebSocketUpgrade;
@@ -22,6 +24,7 @@ pub fn app(state: Arc<AppState>) -> Router {
     Router::new()
         .route("/", get(|| async { static_file("index.html") }))
         .route("/healthz", get(healthz))
+        .route("/readyz", get(readyz))
         .route("/api/datasets", get(datasets))
         .route("/metrics", get(metrics))
         .route("/ws", get(websocket))
@@ -59,13 +62,32 @@ fn static_file(name: &str) -> Response {
     }
 }
 
+/// Liveness: the process serves. Also names the adapter (a software one flagged) and the load.
 async fn healthz(State(state): State<Arc<AppState>>) -> impl IntoResponse {
     axum::Json(json!({
         "status": "ok",
         "adapter": state.adapter,
         "software_renderer": state.software_renderer,
         "version": env!("CARGO_PKG_VERSION"),
+        "sessions": state.metrics.sessions_active.load(Ordering::Relaxed),
+        "capacity": state.max_sessions,
+        "draining": state.draining.is_cancelled(),
+        "route": state.route_prefix,
     }))
+}
+
+/// Readiness: 200 while a new session would be admitted, 503 when full or draining (a router
+/// then sends new sessions elsewhere; this process still serves its own).
+async fn readyz(State(state): State<Arc<AppState>>) -> Response {
+    let sessions = state.metrics.sessions_active.load(Ordering::Relaxed);
+    match crate::lifecycle::readiness(&state) {
+        Ok(()) => axum::Json(json!({ "ready": true, "sessions": sessions })).into_response(),
+        Err(why) => (
+            StatusCode::SERVICE_UNAVAILABLE,
+            axum::Json(json!({ "ready": false, "reason": why.as_str(), "sessions": sessions })),
+        )
+            .into_response(),
+    }
 }
 
 /// Prometheus text exposition; needs a token when the server has tokens.
@@ -86,7 +108,7 @@ fn check_access(state: &AppState, headers: &HeaderMap) -> Result<(), crate::auth
         state
             .metrics
             .upgrades_refused
-            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            .fetch_add(1, Ordering::Relaxed);
     })
 }
 

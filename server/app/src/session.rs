@@ -155,6 +155,12 @@ pub async fn handle_socket(socket: WebSocket, state: Arc<AppState>) {
     });
     let (outbox, outbox_rx) = mpsc::channel(OUTBOX);
     let _ = outbox.send(welcome).await;
+    if state.draining.is_cancelled() {
+        // Joined (or came back) while the server drains: it has as long as the others.
+        let _ = outbox
+            .send(crate::lifecycle::draining_message(&state))
+            .await;
+    }
     session.publish(ServerMessage::Viewers {
         viewers: session.viewers(),
     });
@@ -332,6 +338,7 @@ fn welcome(
         viewers: session.viewers(),
         joined,
         version: core.version,
+        route: state.route_prefix.clone(),
     })
 }
 
@@ -385,6 +392,8 @@ async fn open_or_join(state: &Arc<AppState>, hello: ClientMessage) -> Result<Vie
             window,
         });
     }
+    // A place is reserved before the dataset loads, so the limit holds while loads overlap.
+    let slot = crate::lifecycle::admit(state)?;
     let viewport = viewport.unwrap_or_default();
     check_viewport(state, &viewport)?;
     let technique = technique.unwrap_or_else(|| "raymarch".to_owned());
@@ -446,10 +455,8 @@ async fn open_or_join(state: &Arc<AppState>, hello: ClientMessage) -> Result<Vie
     };
     // The render thread saw the session before its first viewer: look again.
     let _ = state.render.send(Command::Wake).await;
-    state
-        .metrics
-        .sessions_active
-        .fetch_add(1, Ordering::Relaxed);
+    // The session gives its place back when it closes (`leave`).
+    slot.keep();
     state.metrics.sessions_total.fetch_add(1, Ordering::Relaxed);
     tracing::info!(session = render_id, "session opened");
     let welcome = {
@@ -840,7 +847,12 @@ async fn write_loop(
         let outgoing = tokio::select! {
             biased;
             _ = shutdown.cancelled() => {
-                let bye = ServerMessage::Bye { reason: "server shutting down".into() };
+                let reason = if state.draining.is_cancelled() {
+                    "server drained for a restart or scale-down; reopen the view at the deployment's root"
+                } else {
+                    "server shutting down"
+                };
+                let bye = ServerMessage::Bye { reason: reason.into() };
                 let _ = send(&mut sink, text(&bye)).await;
                 let _ = sink.close().await;
                 break;
