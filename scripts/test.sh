@@ -1,10 +1,12 @@
 #!/usr/bin/env bash
 # Runs every test: the Rust workspace (unit, GPU on lavapipe or a real GPU, end to end with
 # scripted WebSocket clients), then the web viewer in headless Chromium against a real server.
-# Then the independent physics reference: pathtrace and raymarch against Mitsuba 3.
+# Then sessions pinned to their process behind nginx (tests/deploy/routing_test.py), and the
+# independent physics reference: pathtrace and raymarch against Mitsuba 3.
 # Needs: a Vulkan adapter (apt-get install mesa-vulkan-drivers), ../shared/data (or
-# VOXLIGHT_DATA), node + npm, Chromium at /usr/bin/chromium (or CHROMIUM_PATH), and Python 3
-# with `pip install mitsuba numpy` (Mitsuba's LLVM variant needs Debian's libllvm19).
+# VOXLIGHT_DATA), node + npm, Chromium at /usr/bin/chromium (or CHROMIUM_PATH), nginx, and
+# Python 3 with `pip install mitsuba numpy websockets` (Mitsuba's LLVM variant needs Debian's
+# libllvm19).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -32,6 +34,9 @@ fi
 kill -TERM $server
 wait $server || true
 [ $status -eq 0 ] || exit $status
+
+echo "== several server processes behind nginx, routed as deploy/k8s routes pods =="
+python3 tests/deploy/routing_test.py --voxlight target/debug/voxlight
 
 echo "== independent reference: Mitsuba 3 =="
 for technique in pathtrace raymarch; do
