@@ -342,6 +342,10 @@ pub enum ServerMessage {
         server_version: String,
         /// The GPU adapter that renders, e.g. `llvmpipe (LLVM 15.0.6, 256 bits)`.
         adapter: String,
+        /// `true` when the adapter is a CPU rasterizer (lavapipe/llvmpipe): a GPU was not found
+        /// or not passed into the container, and frames will be slow.
+        #[serde(default)]
+        software_renderer: bool,
         dataset: DatasetInfo,
         techniques: Vec<TechniqueInfo>,
         state: SessionState,

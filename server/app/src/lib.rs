@@ -141,6 +141,7 @@ impl Server {
             tracing::warn!(%adapter, "rendering on a software adapter (CPU): expect low frame rates");
         }
         let metrics = Arc::new(metrics::Metrics::default());
+        let _ = metrics.adapter.set((adapter.clone(), software_renderer));
         metrics.session_capacity.store(
             config.max_sessions.map_or(-1, |m| m as i64),
             std::sync::atomic::Ordering::Relaxed,

@@ -70,6 +70,8 @@ pub struct Metrics {
     pub session_capacity: AtomicI64,
     /// 1 while the process drains (no new sessions).
     pub draining: AtomicI64,
+    /// The adapter's name and whether it is a CPU rasterizer, set once at start.
+    pub adapter: std::sync::OnceLock<(String, bool)>,
     pub sessions_total: AtomicU64,
     /// Connected viewers over all sessions.
     pub viewers_active: AtomicI64,
@@ -302,6 +304,13 @@ impl Metrics {
             "From a client's edit arriving to the first frame of it being sent.",
             "",
         );
+        if let Some((adapter, software)) = self.adapter.get() {
+            let adapter = adapter.replace('\\', "\\\\").replace('"', "\\\"");
+            let _ = writeln!(
+                out,
+                "# HELP voxlight_adapter_info The GPU adapter that renders (software_renderer=\"true\": a CPU rasterizer).\n# TYPE voxlight_adapter_info gauge\nvoxlight_adapter_info{{adapter=\"{adapter}\",software_renderer=\"{software}\"}} 1"
+            );
+        }
         out
     }
 }
@@ -334,6 +343,10 @@ mod tests {
         assert!(
             text.contains("# TYPE voxlight_session_capacity gauge\nvoxlight_session_capacity 0")
         );
+        let _ = m.adapter.set(("llvmpipe \"x\"".into(), true));
+        assert!(m.render().contains(
+            "\nvoxlight_adapter_info{adapter=\"llvmpipe \\\"x\\\"\",software_renderer=\"true\"} 1\n"
+        ));
         m.session_capacity.store(-1, Ordering::Relaxed);
         assert!(m.render().contains("\nvoxlight_session_capacity +Inf\n"));
     }

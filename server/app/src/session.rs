@@ -328,6 +328,7 @@ fn welcome(
         session: session.id.clone(),
         server_version: env!("CARGO_PKG_VERSION").to_owned(),
         adapter: state.adapter.clone(),
+        software_renderer: state.software_renderer,
         dataset: state
             .catalog
             .info(&core.dataset)
