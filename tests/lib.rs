@@ -373,6 +373,21 @@ impl Client {
         self.recv_text().await
     }
 
+    /// Waits for a WebSocket ping, skipping everything else; the time it took.
+    pub async fn wait_for_ping(&mut self, timeout: Duration) -> anyhow::Result<Duration> {
+        let started = std::time::Instant::now();
+        loop {
+            let left = timeout.saturating_sub(started.elapsed());
+            let message = tokio::time::timeout(left, self.ws.next())
+                .await
+                .context("no ping within the timeout")?
+                .context("connection closed")??;
+            if let Message::Ping(_) = message {
+                return Ok(started.elapsed());
+            }
+        }
+    }
+
     /// Drops the TCP connection without a close handshake (a network failure).
     pub fn drop_connection(self) {
         drop(self.ws);

@@ -189,6 +189,30 @@ async fn a_drain_ends_when_the_last_viewer_leaves() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_quiet_viewer_of_a_converged_picture_gets_pings() {
+    let server = TestServer::start_with(ServerConfig {
+        default_dataset: Some("phantom:sphere".into()),
+        ping_interval: Some(Duration::from_millis(300)),
+        ..Default::default()
+    })
+    .await
+    .unwrap();
+    let mut viewer = Client::connect(&server.ws_url()).await.unwrap();
+    viewer
+        .send_json(json!({"type": "hello", "protocol": 1, "viewport": {"width": 32, "height": 32}}))
+        .await
+        .unwrap();
+    viewer.frame_where(|f| f.meta.converged).await.unwrap();
+    // Nothing else flows now; pings keep proxies from cutting the connection.
+    for _ in 0..2 {
+        let waited = viewer.wait_for_ping(Duration::from_secs(10)).await.unwrap();
+        assert!(waited < Duration::from_secs(5), "{waited:?}");
+    }
+    viewer.close().await;
+    server.stop().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_bad_route_prefix_or_zero_capacity_is_refused_at_start() {
     for prefix in ["p/0/", "/p/0", "/p//0/", "/p/<0>/"] {
         let result = TestServer::start_with(ServerConfig {

@@ -356,6 +356,7 @@ conn.addEventListener('close', (/** @type {any} */ e) => {
     showOverlay('Disconnected', '', true);
     return;
   }
+  if (!d.everConnected && serverRoute) checkServerGone();
   const why = helloError || (d.reason ? `“${d.reason}”` : d.everConnected ? `connection lost (code ${d.code})` : 'server unreachable');
   showOverlay('Connection lost', `${why} — reconnecting in ${(d.retryInMs / 1000).toFixed(1)} s`, true);
   $('badge').className = 'badge badge-wait';
@@ -590,6 +591,29 @@ function toDeploymentRoot() {
   u.searchParams.delete('session');
   history.replaceState(history.state, '', root + u.search + u.hash);
   return true;
+}
+
+/**
+ * Our server process cannot be reached. When the deployment's root answers and the process's
+ * own route does not, the process is gone (scaled down, or crashed without `bye`) and our
+ * session with it: reopen the view at the root. When neither answers, the network is down and
+ * we keep trying the process, whose session may still be there.
+ */
+async function checkServerGone() {
+  const route = serverRoute;
+  const { root, server } = routeFolders(location.pathname, route);
+  const answers = async (/** @type {string} */ url) => {
+    try {
+      return (await fetch(url, { cache: 'no-store' })).ok;
+    } catch {
+      return false;
+    }
+  };
+  const [serverUp, rootUp] = await Promise.all([answers(`${server}healthz`), answers(`${root}healthz`)]);
+  if (!serverUp && rootUp && serverRoute === route && !conn.ready && toDeploymentRoot()) {
+    conn.retryNow();
+    toast('info', 'server gone', 'the server holding this session is gone; reopening the view on another');
+  }
 }
 
 /**

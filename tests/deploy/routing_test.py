@@ -13,7 +13,9 @@ sessions. Checked, with scripted WebSocket clients and the web viewer in headles
    old ones stay where they are;
 3. SIGTERM on one process: readiness false, its viewers told (`draining`), new sessions on it
    refused with `draining`, its sessions still served, the others unaffected; at the drain
-   deadline `bye`, exit 0, and the web viewer reopens its view on another process.
+   deadline `bye`, exit 0, and the web viewer reopens its view on another process;
+4. a process killed without a drain: the web viewer finds its route dead and the root alive
+   and reopens its view on a process that takes it.
 
     python3 tests/deploy/routing_test.py --voxlight target/debug/voxlight
 
@@ -159,7 +161,7 @@ def hello(ws, session: str | None = None, name: str = "script") -> dict:
 
 def open_ws(url: str):
     # Unbounded queue: the test reads frames only now and then.
-    options = dict(open_timeout=STEP_S, max_queue=None, max_size=None)
+    options = dict(open_timeout=STEP_S, close_timeout=2, max_queue=None, max_size=None)
     try:
         # websockets ≥ 17.1 wants `legacy=True` for a connection outside a `with` block.
         return connect(url, legacy=True, **options)
@@ -216,9 +218,10 @@ def run(binary: str, folder: Path) -> int:
             except Exception as e:  # noqa: BLE001 - a failed poll is retried
                 print(f"router sync failed: {e}", flush=True)
 
-    def wait_ready(expected: set[int]) -> bool:
+    def wait_ready(expected: set[int], among: bool = False) -> bool:
+        """Until the router's ready set is `expected` (or, `among`, includes it)."""
         deadline = time.monotonic() + STEP_S
-        while router.ready != expected:
+        while not (expected <= (router.ready or set()) if among else router.ready == expected):
             if time.monotonic() > deadline:
                 return False
             time.sleep(0.1)
@@ -357,7 +360,23 @@ def run(binary: str, folder: Path) -> int:
         moved_to = ordinal_of(moved["path"]) if moved.get("event") == "moved" and "/p/" in moved.get("path", "") else -1
         check("the web viewer reopened its view on another process", moved_to not in (-1, page_home),
               json.dumps(moved)[:200])
-        check("no script error in the page", not moved.get("errors"), str(moved.get("errors")))
+
+        # -- 4. a process dies without a drain: the web viewer finds its route dead and the root
+        # alive, and reopens its view at the root --------------------------------------------
+        survivor_home = next(n for n in processes if n not in (page_home, 2))
+        freed = next(ws for ws, w in fillers if ordinal_of(w["route"]) == survivor_home)
+        freed.close()  # room on the survivor once the session's grace period is over
+        check("the survivor takes new sessions again", wait_ready({survivor_home}, among=True), f"ready {router.ready}")
+        killed_at = time.monotonic()
+        processes[2].proc.kill()
+        processes[2].proc.wait(10)
+        page.stdin.write("moved\n")
+        page.stdin.flush()
+        moved_again = json.loads(page.stdout.readline() or '{"event":"no output"}')
+        check("after its process was killed the web viewer reopened its view on the survivor",
+              moved_again.get("event") == "moved" and moved_again.get("path") == f"/p/{survivor_home}/",
+              f"{json.dumps(moved_again)[:200]} after {time.monotonic() - killed_at:.1f} s")
+        check("no script error in the page", not moved_again.get("errors"), str(moved_again.get("errors")))
     except Exception as e:  # noqa: BLE001 - reported as a failed check with the logs below
         check("routing test ran to the end", False, f"{type(e).__name__}: {e}")
     finally:

@@ -58,6 +58,8 @@ pub struct AppState {
     pub draining: CancellationToken,
     /// When a drain ends at the latest.
     pub drain_deadline: std::sync::Mutex<Option<tokio::time::Instant>>,
+    /// How often every viewer's socket gets a WebSocket ping.
+    pub ping_interval: std::time::Duration,
 }
 
 /// What `serve` needs besides a listener.
@@ -86,6 +88,9 @@ pub struct ServerConfig {
     /// The path prefix under which a router reaches this very process (`/p/3/`, stripped by
     /// the router); sent to viewers so their share links and reconnects come back here.
     pub route_prefix: Option<String>,
+    /// How often viewers get a WebSocket ping (keeps proxies from cutting a quiet, converged
+    /// viewer); `session::PING_INTERVAL` when unset.
+    pub ping_interval: Option<std::time::Duration>,
 }
 
 /// Default global GPU memory budget: 4 GiB, which fits most GPUs that run this (a larger
@@ -187,6 +192,10 @@ impl Server {
             route_prefix: config.route_prefix.clone(),
             draining: CancellationToken::new(),
             drain_deadline: Default::default(),
+            ping_interval: config
+                .ping_interval
+                .unwrap_or(session::PING_INTERVAL)
+                .max(std::time::Duration::from_millis(10)),
         });
         Ok(Self {
             state,

@@ -344,6 +344,7 @@ fn run() -> anyhow::Result<()> {
                     }),
                     max_sessions: Some(max_sessions as usize),
                     route_prefix,
+                    ping_interval: None,
                 },
                 Duration::from_secs(drain_timeout_s),
             )

@@ -41,6 +41,9 @@ pub const DEFAULT_ITERATIONS: u32 = 128;
 const STATS_INTERVAL: Duration = Duration::from_millis(500);
 /// A viewer whose socket accepts nothing for this long is disconnected.
 const SEND_TIMEOUT: Duration = Duration::from_secs(30);
+/// A WebSocket ping this often by default: a converged picture sends nothing else, and proxies
+/// cut quiet connections (nginx after 60 s by default, cloud load balancers after 30 s or more).
+pub const PING_INTERVAL: Duration = Duration::from_secs(20);
 
 static NEXT_SESSION: AtomicU64 = AtomicU64::new(1);
 
@@ -843,6 +846,10 @@ async fn write_loop(
         sent_times: VecDeque::new(),
         last_stats: Instant::now() - STATS_INTERVAL,
     };
+    let mut ping = tokio::time::interval_at(
+        tokio::time::Instant::now() + state.ping_interval,
+        state.ping_interval,
+    );
     loop {
         let ready = pacing.ready();
         let outgoing = tokio::select! {
@@ -890,6 +897,7 @@ async fn write_loop(
                 }
                 Err(RecvError::Closed) => break,
             },
+            _ = ping.tick() => Message::Ping(Default::default()),
             changed = acked.changed() => {
                 if changed.is_err() {
                     break;
