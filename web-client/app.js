@@ -1372,7 +1372,8 @@ function applyDatasetInfo(info) {
     tfEditor.setDataset(d);
     const units = d.units ? ` ${d.units}` : '';
     const sp = (d.spacing || []).map((x) => +Number(x).toFixed(3)).join(' × ');
-    $('dataset-info').textContent = `${(d.dims || []).join(' × ')} voxels · spacing ${sp} · ${fmtNum(d.value_min)}…${fmtNum(d.value_max)}${units}` + (d.modality ? ` · ${d.modality}` : '') + (d.format ? ` · ${d.format}` : '');
+    $('dataset-info').textContent = `${(d.dims || []).join(' × ')} voxels · spacing ${sp} · ${fmtNum(d.value_min)}…${fmtNum(d.value_max)}${units}` + (d.modality ? ` · ${d.modality}` : '') + (d.format ? ` · ${d.format}` : '')
+      + (d.downsampled ? ` · shown at 1/${d.downsampled.factor} per axis (loaded ${(d.downsampled.original_dims || []).join(' × ')}: ${d.downsampled.reason})` : '');
     $('hud-sub').textContent = [d.modality, d.dims ? d.dims.join('×') : ''].filter(Boolean).join(' · ');
     for (const w of d.warnings || []) toast('info', 'dataset', String(w));
     const isCt = d.units === 'HU';

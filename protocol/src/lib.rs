@@ -257,6 +257,21 @@ pub struct DatasetDetails {
     /// 256 bins over the normalized value.
     pub histogram: Vec<u32>,
     pub warnings: Vec<String>,
+    /// Present when the server renders a reduced copy because the volume does not fit the GPU
+    /// (`dims` and `spacing` above are the reduced copy's).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub downsampled: Option<Downsampled>,
+}
+
+/// How a volume too large for the GPU was reduced to fit.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Downsampled {
+    /// Voxels averaged per axis (2: every 2×2×2 block became one voxel).
+    pub factor: u32,
+    /// The volume's dimensions as loaded.
+    pub original_dims: [u32; 3],
+    /// What it did not fit, e.g. `3D textures of at most 2048 per axis`.
+    pub reason: String,
 }
 
 /// A technique the server offers.

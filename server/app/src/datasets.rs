@@ -26,6 +26,56 @@ pub enum DatasetError {
     NoDataDir(PathBuf),
 }
 
+/// What a volume must fit to be uploaded: the GPU's largest 3D texture edge and a share of the
+/// GPU memory budget. A volume that does not fit is rendered from a box-filtered copy reduced
+/// by the smallest integer factor that fits, and the viewer is told (`details.downsampled`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct GpuFit {
+    pub max_dim: u32,
+    pub max_bytes: u64,
+    pub bytes_per_voxel: u64,
+}
+
+impl GpuFit {
+    /// No limit (tests and tools that never upload).
+    pub const UNLIMITED: GpuFit = GpuFit {
+        max_dim: u32::MAX,
+        max_bytes: u64::MAX,
+        bytes_per_voxel: 1,
+    };
+
+    /// The smallest per-axis factor that makes `dims` fit, with what it did not fit; None when
+    /// the volume fits as it is.
+    pub fn reduction(&self, dims: [u32; 3]) -> Option<(u32, String)> {
+        let bytes = |f: u32| {
+            dims.iter()
+                .map(|&d| d.div_ceil(f) as u64)
+                .product::<u64>()
+                .saturating_mul(self.bytes_per_voxel)
+        };
+        let fits = |f: u32| {
+            dims.iter().all(|&d| d.div_ceil(f) <= self.max_dim) && bytes(f) <= self.max_bytes
+        };
+        if fits(1) {
+            return None;
+        }
+        let reason = if dims.iter().any(|&d| d > self.max_dim) {
+            format!(
+                "this GPU takes 3D textures of at most {} per axis",
+                self.max_dim
+            )
+        } else {
+            format!(
+                "it needs {} MiB of GPU memory and one volume may use {} MiB",
+                bytes(1) >> 20,
+                self.max_bytes >> 20
+            )
+        };
+        let largest = dims.iter().copied().max().unwrap_or(1);
+        (2..=largest.max(2)).find(|&f| fits(f)).map(|f| (f, reason))
+    }
+}
+
 struct Entry {
     info: DatasetInfo,
     /// None for phantoms.
@@ -35,13 +85,14 @@ struct Entry {
 /// Every dataset by name, with loaded volumes shared while anyone uses them.
 pub struct Catalog {
     entries: Vec<Entry>,
+    fit: GpuFit,
     loaded: Mutex<HashMap<String, Weak<Volume>>>,
     details: Mutex<HashMap<String, DatasetDetails>>,
 }
 
 impl Catalog {
     /// The phantoms plus every volume under `data_dir`.
-    pub fn new(data_dir: Option<&Path>) -> Result<Self, DatasetError> {
+    pub fn new(data_dir: Option<&Path>, fit: GpuFit) -> Result<Self, DatasetError> {
         let mut entries: Vec<Entry> = voxlight_volumes::phantom_names()
             .iter()
             .map(|name| Entry {
@@ -75,6 +126,7 @@ impl Catalog {
         }
         Ok(Self {
             entries,
+            fit,
             loaded: Mutex::new(HashMap::new()),
             details: Mutex::new(HashMap::new()),
         })
@@ -144,6 +196,24 @@ impl Catalog {
             source,
         })?;
         volume.name = name.to_owned();
+        let downsampled = self.fit.reduction(volume.dims).map(|(factor, reason)| {
+            let original_dims = volume.dims;
+            let mut reduced = volume.downsampled_by(factor);
+            reduced.format = volume.format.clone();
+            let [a, b, c] = original_dims;
+            let [x, y, z] = reduced.dims;
+            reduced.warnings.push(format!(
+                "shown downsampled {factor}× per axis, {a}×{b}×{c} → {x}×{y}×{z} voxels: {reason}; \
+                 detail finer than {factor} voxels is averaged away"
+            ));
+            tracing::warn!(dataset = name, factor, ?original_dims, %reason, "volume downsampled to fit the GPU");
+            volume = reduced;
+            voxlight_protocol::Downsampled {
+                factor,
+                original_dims,
+                reason,
+            }
+        });
         tracing::info!(
             dataset = name,
             dims = ?volume.dims,
@@ -153,7 +223,9 @@ impl Catalog {
         );
         let volume = Arc::new(volume);
         if let Ok(mut details) = self.details.lock() {
-            details.insert(name.to_owned(), details_of(&volume));
+            let mut info = details_of(&volume);
+            info.downsampled = downsampled;
+            details.insert(name.to_owned(), info);
         }
         if let Ok(mut loaded) = self.loaded.lock() {
             loaded.insert(name.to_owned(), Arc::downgrade(&volume));
@@ -174,6 +246,7 @@ pub fn details_of(volume: &Volume) -> DatasetDetails {
         world_extent: volume.world_extent(),
         histogram: volume.histogram.clone(),
         warnings: volume.warnings.clone(),
+        downsampled: None,
     }
 }
 
@@ -281,4 +354,43 @@ pub fn default_lights_for(volume: &Volume) -> Vec<Light> {
         ];
     }
     default_lights()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_volume_that_fits_is_left_alone() {
+        let fit = GpuFit {
+            max_dim: 2048,
+            max_bytes: 1 << 30,
+            bytes_per_voxel: 2,
+        };
+        assert_eq!(fit.reduction([512, 512, 128]), None);
+        assert_eq!(GpuFit::UNLIMITED.reduction([100_000, 3, 3]), None);
+    }
+
+    #[test]
+    fn the_smallest_factor_that_fits_is_chosen() {
+        let edge = GpuFit {
+            max_dim: 2048,
+            max_bytes: u64::MAX,
+            bytes_per_voxel: 2,
+        };
+        let (f, why) = edge.reduction([512, 512, 4097]).unwrap();
+        assert_eq!(f, 3, "4097 / 2 rounds up to 2049 > 2048");
+        assert!(why.contains("2048 per axis"), "{why}");
+        // 1024³ × 2 B = 2 GiB; half a GiB allowed: 2× per axis (256 MiB) is the first fit.
+        let budget = GpuFit {
+            max_dim: 4096,
+            max_bytes: 512 << 20,
+            bytes_per_voxel: 2,
+        };
+        let (f, why) = budget.reduction([1024, 1024, 1024]).unwrap();
+        assert_eq!(f, 2);
+        assert!(why.contains("2048 MiB") && why.contains("512 MiB"), "{why}");
+        let (f, _) = budget.reduction([1025, 1024, 1024]).unwrap();
+        assert_eq!(f, 2, "ceil(1025 / 2) = 513: 513×512×512×2 B still fits");
+    }
 }

@@ -6,6 +6,7 @@ pub mod auth;
 pub mod bench;
 pub mod bench_interactive;
 pub mod bench_irradiance;
+pub mod bench_load;
 pub mod bench_manylight;
 pub mod bench_vtk;
 pub mod datasets;
@@ -88,6 +89,9 @@ pub struct ServerConfig {
     /// The path prefix under which a router reaches this very process (`/p/3/`, stripped by
     /// the router); sent to viewers so their share links and reconnects come back here.
     pub route_prefix: Option<String>,
+    /// GPU bytes one volume may take; a larger one is rendered from a downsampled copy (the
+    /// viewer is told). Half the GPU memory budget when unset.
+    pub max_volume_bytes: Option<u64>,
     /// How often viewers get a WebSocket ping (keeps proxies from cutting a quiet, converged
     /// viewer); `session::PING_INTERVAL` when unset.
     pub ping_interval: Option<std::time::Duration>,
@@ -124,7 +128,18 @@ impl Server {
         engine: Engine,
         shutdown: CancellationToken,
     ) -> anyhow::Result<Self> {
-        let catalog = Arc::new(Catalog::new(config.data_dir.as_deref())?);
+        let budget = config
+            .gpu_memory_budget
+            .unwrap_or(DEFAULT_GPU_MEMORY_BUDGET);
+        let fit = datasets::GpuFit {
+            max_dim: engine.gpu.limits.max_texture_dimension_3d,
+            max_bytes: config.max_volume_bytes.unwrap_or(budget / 2),
+            bytes_per_voxel: voxlight_engine::volume::GpuVolume::bytes_needed(
+                &engine.gpu,
+                [1, 1, 1],
+            ),
+        };
+        let catalog = Arc::new(Catalog::new(config.data_dir.as_deref(), fit)?);
         let default_dataset = config
             .default_dataset
             .clone()
@@ -158,9 +173,6 @@ impl Server {
             route_prefix = config.route_prefix.as_deref(),
             "GPU adapter opened"
         );
-        let budget = config
-            .gpu_memory_budget
-            .unwrap_or(DEFAULT_GPU_MEMORY_BUDGET);
         let (render, render_thread) = render_service::spawn(
             Arc::new(engine),
             metrics.clone(),

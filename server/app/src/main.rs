@@ -84,6 +84,11 @@ enum Command {
         /// A second SIGTERM or Ctrl-C stops at once.
         #[arg(long, default_value_t = 300)]
         drain_timeout_s: u64,
+        /// GPU memory (MiB) one volume may take; a larger volume (or one over the GPU's 3D
+        /// texture size) is rendered from a copy downsampled by the smallest factor that fits,
+        /// and the viewer is told. Default: half of --gpu-memory-mib.
+        #[arg(long)]
+        max_volume_mib: Option<u64>,
     },
     /// Scripted viewers against a running server: each session has an editor that orbits
     /// the camera and edits the TF, and watchers that join it. Reports input-to-frame
@@ -137,7 +142,7 @@ enum Command {
         pfm: Option<PathBuf>,
     },
     /// Run a benchmark (`raymarch`, `preview`, `preview-vtk`, `interactive`, `tf-edit`,
-    /// `manylight`, `convergence`).
+    /// `manylight`, `convergence`, `load`).
     Bench {
         name: String,
         /// Technique measured by `tf-edit`.
@@ -208,7 +213,8 @@ enum Command {
         #[arg(long, value_delimiter = ',', default_value = "1,3,4")]
         lights: Vec<u32>,
         /// `convergence`: datasets of ../shared/data (default bonsai,chest,engine);
-        /// `preview-vtk`: those of VTK's baseline (default bonsai,ct).
+        /// `preview-vtk`: those of VTK's baseline (default bonsai,ct); `load`: paths under the
+        /// data folder (default the chest series, bonsai, tooth.nhdr, example_ct.nii.gz).
         #[arg(long, value_delimiter = ',')]
         datasets: Option<Vec<String>>,
         /// `convergence`, `tf-edit --technique irradiance`: largest cache-zone radius in voxels
@@ -314,6 +320,7 @@ fn run() -> anyhow::Result<()> {
             max_sessions,
             route_prefix,
             drain_timeout_s,
+            max_volume_mib,
         } => {
             if let Some(file) = tokens_file {
                 let text = std::fs::read_to_string(&file)
@@ -345,6 +352,7 @@ fn run() -> anyhow::Result<()> {
                     max_sessions: Some(max_sessions as usize),
                     route_prefix,
                     ping_interval: None,
+                    max_volume_bytes: max_volume_mib.map(|m| m.saturating_mul(1 << 20)),
                 },
                 Duration::from_secs(drain_timeout_s),
             )
@@ -587,8 +595,32 @@ fn run() -> anyhow::Result<()> {
                     };
                     serde_json::to_value(interactive(bench, data.clone())?)?
                 }
+                "load" => {
+                    let data = data
+                        .clone()
+                        .context("bench load reads ../shared/data (or --data DIR); none found")?;
+                    let load_datasets = datasets.clone().unwrap_or_else(|| {
+                        [
+                            "ct-chest-lidc",
+                            "vti/bonsai.vti",
+                            "nrrd/tooth.nhdr",
+                            "nifti/example_ct.nii.gz",
+                        ]
+                        .map(str::to_owned)
+                        .to_vec()
+                    });
+                    let bench = voxlight_server::bench_load::LoadBench {
+                        data_dir: &data,
+                        datasets: &load_datasets,
+                        repeats,
+                    };
+                    if voxlight_server::bench_load::child(&bench)? {
+                        return Ok(());
+                    }
+                    voxlight_server::bench_load::load(&bench)?
+                }
                 other => anyhow::bail!(
-                    "unknown benchmark `{other}`; available: raymarch, preview, preview-vtk, interactive, tf-edit, manylight, convergence"
+                    "unknown benchmark `{other}`; available: raymarch, preview, preview-vtk, interactive, tf-edit, manylight, convergence, load"
                 ),
             };
             if json {

@@ -151,11 +151,17 @@ impl Volume {
     /// over the voxels they hold); spacing grows so the world extent is preserved.
     pub fn downsampled(&self, max_dim: u32) -> Volume {
         let max_dim = max_dim.max(1);
-        if self.dims.iter().all(|&d| d <= max_dim) || self.data.len() != self.voxel_count() {
+        let largest = self.dims.iter().copied().max().unwrap_or(1);
+        self.downsampled_by(largest.div_ceil(max_dim))
+    }
+
+    /// Box-filtered downsample by `factor` along every axis (1 or less: a copy), as
+    /// [`Volume::downsampled`] describes.
+    pub fn downsampled_by(&self, factor: u32) -> Volume {
+        if factor <= 1 || self.data.len() != self.voxel_count() {
             return self.clone();
         }
-        let largest = self.dims.iter().copied().max().unwrap_or(1);
-        let f: [u32; 3] = [largest.div_ceil(max_dim).max(1); 3];
+        let f: [u32; 3] = [factor; 3];
         let nd: [u32; 3] = std::array::from_fn(|i| self.dims[i].div_ceil(f[i]));
         let [nx, ny, nz] = self.dims.map(|d| d as usize);
         let mut out = Vec::with_capacity(nd.iter().map(|&d| d as usize).product());
