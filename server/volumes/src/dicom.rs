@@ -1,22 +1,39 @@
-//! DICOM series loader (one slice per file, uncompressed transfer syntaxes), built on
-//! `dicom-object`. Slices are grouped by SeriesInstanceUID and sorted along the slice normal.
+//! DICOM loader, built on `dicom-object`: series of single-frame files and (enhanced)
+//! multi-frame files, uncompressed or compressed with any codec dicom-rs's transfer syntax
+//! registry decodes here (RLE Lossless, JPEG baseline / 8-bit extended / lossless, JPEG-LS,
+//! JPEG 2000). Every frame becomes one slice; slices are grouped by SeriesInstanceUID and sorted
+//! along the slice normal.
 //!
 //! Privacy: warnings and format strings name files and geometry only, never patient data.
 
-use std::collections::BTreeMap;
+use std::borrow::Cow;
+use std::collections::{BTreeMap, BTreeSet};
 use std::io::Read;
+use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::{Path, PathBuf};
 
-use dicom_core::Tag;
-use dicom_dictionary_std::tags;
+use dicom_core::dictionary::{DataDictionary, DataDictionaryEntry, VirtualVr};
+use dicom_core::{Tag, VR};
+use dicom_dictionary_std::{StandardDataDictionary, tags};
+use dicom_encoding::adapters::{PixelDataObject, RawPixelData};
+use dicom_encoding::transfer_syntax::{Codec, TransferSyntaxIndex};
 use dicom_object::file::ReadPreamble;
-use dicom_object::{DefaultDicomObject, OpenFileOptions};
+use dicom_object::{DefaultDicomObject, InMemDicomObject, OpenFileOptions};
+use dicom_transfer_syntax_registry::TransferSyntaxRegistry;
 
-use crate::VolumeError;
 use crate::raw::{RawVolume, Samples, check_dims, check_spacing};
+use crate::{MAX_VOXELS, VolumeError};
 
 /// Most individual problems listed in one warning before it says "and N more".
 const MAX_LISTED: usize = 5;
+
+/// Most frames accepted in one file. Each frame costs a slice record before any voxel is
+/// allocated, so a small file must not be able to declare millions of them.
+const MAX_FRAMES_PER_FILE: i64 = 1 << 16;
+
+const EXPLICIT_VR_BIG_ENDIAN: &str = "1.2.840.10008.1.2.2";
+const JPEG_BASELINE: &str = "1.2.840.10008.1.2.4.50";
+const JPEG_EXTENDED: &str = "1.2.840.10008.1.2.4.51";
 
 /// True when the file looks like DICOM: `.dcm` extension or `DICM` at byte 128.
 pub(crate) fn looks_like_dicom(path: &Path) -> bool {
@@ -44,32 +61,56 @@ pub(crate) fn has_dicm_magic(path: &Path) -> bool {
     got == 132 && &b[128..132] == b"DICM"
 }
 
-fn ts_name(uid: &str) -> Option<&'static str> {
-    Some(match uid {
-        "1.2.840.10008.1.2" => "Implicit VR Little Endian",
-        "1.2.840.10008.1.2.1" => "Explicit VR Little Endian",
-        "1.2.840.10008.1.2.2" => "Explicit VR Big Endian",
-        "1.2.840.10008.1.2.1.99" => "Deflated Explicit VR Little Endian",
-        _ => return None,
-    })
+/// The transfer syntax's name from dicom-rs's registry, or the UID when it is unknown.
+fn ts_name(uid: &str) -> String {
+    TransferSyntaxRegistry
+        .get(uid)
+        .map_or_else(|| uid.to_string(), |ts| ts.name().to_string())
 }
 
-fn compressed_ts_name(uid: &str) -> &'static str {
-    match uid {
-        "1.2.840.10008.1.2.4.50" => "JPEG Baseline",
-        "1.2.840.10008.1.2.4.51" => "JPEG Extended",
-        "1.2.840.10008.1.2.4.57" | "1.2.840.10008.1.2.4.70" => "JPEG Lossless",
-        "1.2.840.10008.1.2.4.80" | "1.2.840.10008.1.2.4.81" => "JPEG-LS",
-        "1.2.840.10008.1.2.4.90" | "1.2.840.10008.1.2.4.91" => "JPEG 2000",
-        "1.2.840.10008.1.2.5" => "RLE Lossless",
-        _ => "unknown or compressed",
+/// "UID (name)" for messages.
+fn ts_label(uid: &str) -> String {
+    match TransferSyntaxRegistry.get(uid) {
+        Some(ts) => format!("{uid} ({})", ts.name()),
+        None => format!("{uid} (not a transfer syntax dicom-rs knows)"),
     }
 }
 
-/// Header facts of one slice file (no pixel data).
+/// Why this slice's pixel data cannot be decoded here, or `None` when it can.
+fn transfer_syntax_problem(s: &SliceInfo) -> Option<String> {
+    let Some(ts) = TransferSyntaxRegistry.get(&s.ts) else {
+        return Some(format!("transfer syntax {}", ts_label(&s.ts)));
+    };
+    match ts.codec() {
+        Codec::None => None,
+        // jpeg-decoder, dicom-rs's JPEG codec, decodes DCT-based JPEG at 8-bit precision only
+        // (PS3.5 Table 8.2.1-1: 12 bits stored means a 12-bit JPEG stream here).
+        Codec::EncapsulatedPixelData(Some(_), _) if s.ts == JPEG_EXTENDED && s.bits_stored > 8 => {
+            Some(format!(
+                "transfer syntax {} with {} bits stored: 12-bit lossy JPEG cannot be decoded \
+                 (dicom-rs's JPEG decoder, jpeg-decoder, reads 8-bit lossy JPEG only)",
+                ts_label(&s.ts),
+                s.bits_stored
+            ))
+        }
+        Codec::EncapsulatedPixelData(Some(_), _) => None,
+        _ => Some(format!(
+            "transfer syntax {}: no decoder for it is built in (supported: uncompressed, \
+             RLE Lossless, JPEG Baseline, 8-bit JPEG Extended, JPEG Lossless, JPEG-LS and \
+             JPEG 2000)",
+            ts_label(&s.ts)
+        )),
+    }
+}
+
+/// Header facts of one slice: one frame of one file (no pixel data).
 #[derive(Debug, Clone)]
 struct SliceInfo {
     path: PathBuf,
+    /// Index of the frame within its file (0 for single-frame files).
+    frame: u32,
+    /// NumberOfFrames of the file.
+    frames: u32,
     series: String,
     ts: String,
     rows: u32,
@@ -77,17 +118,43 @@ struct SliceInfo {
     bits_alloc: u16,
     bits_stored: u16,
     signed: bool,
+    /// PhotometricInterpretation MONOCHROME1: the minimum value is displayed as white.
+    monochrome1: bool,
     ipp: Option<[f64; 3]>,
     iop: Option<[f64; 6]>,
     pixel_spacing: Option<[f64; 2]>,
     slice_thickness: Option<f64>,
     slope: f64,
     intercept: f64,
+    /// Whether RescaleSlope or RescaleIntercept is present (top level or functional group).
+    has_rescale: bool,
+    /// LossyImageCompression is "01", or the transfer syntax is always lossy.
+    lossy: bool,
     modality: String,
     instance: Option<i64>,
     samples_per_pixel: u16,
-    frames: u32,
     pixel: PixelData,
+}
+
+impl SliceInfo {
+    /// The file name, with the 1-based frame number for multi-frame files.
+    fn name(&self) -> String {
+        if self.frames > 1 {
+            format!("{} frame {}", fname(&self.path), self.frame + 1)
+        } else {
+            fname(&self.path)
+        }
+    }
+
+    fn bytes_per_sample(&self) -> usize {
+        self.bits_alloc as usize / 8
+    }
+
+    fn frame_bytes(&self) -> u64 {
+        (self.rows as u64)
+            .saturating_mul(self.cols as u64)
+            .saturating_mul(self.bytes_per_sample() as u64)
+    }
 }
 
 /// Where a file's PixelData element is, as found by [`prescan`].
@@ -99,8 +166,10 @@ enum PixelData {
         offset: usize,
         len: usize,
     },
-    /// Encapsulated (compressed) fragments.
-    Encapsulated,
+    /// Encapsulated (compressed) data: the number of fragments after the basic offset table.
+    Encapsulated {
+        fragments: usize,
+    },
 }
 
 struct Prescan {
@@ -142,7 +211,6 @@ const SHORT_VRS: &[&[u8; 2]] = &[
 /// checks that each declared length fits in the file, so that the DICOM parser is never asked
 /// to allocate for data that is not there. Also locates the PixelData value.
 fn prescan(b: &[u8]) -> Result<Prescan, String> {
-    use dicom_core::dictionary::{DataDictionary, DataDictionaryEntry, VirtualVr};
     if b.len() < 132 || &b[128..132] != b"DICM" {
         return Err("not a DICOM file (no DICM marker at byte 128)".into());
     }
@@ -184,9 +252,11 @@ fn prescan(b: &[u8]) -> Result<Prescan, String> {
         "1.2.840.10008.1.2.1.99" => return Err("deflated transfer syntax is not supported".into()),
         _ => (false, false),
     };
-    let dict = dicom_dictionary_std::StandardDataDictionary;
+    let dict = StandardDataDictionary;
     let mut pixel = PixelData::Absent;
     let mut encapsulated = false;
+    // Items of the encapsulated PixelData: the basic offset table, then one per fragment.
+    let mut pixel_items = 0usize;
     while pos < b.len() {
         let g = rd16(b, pos, big).ok_or_else(|| trunc(pos))?;
         let e = rd16(b, pos + 2, big).ok_or_else(|| trunc(pos))?;
@@ -198,6 +268,7 @@ fn prescan(b: &[u8]) -> Result<Prescan, String> {
                     format!("item at byte {pos} declares {len} bytes, beyond the end of the file ({} bytes)", b.len())
                 })?;
                 if encapsulated {
+                    pixel_items += 1;
                     pos = end;
                 }
             } else if e == 0xE0DD {
@@ -243,7 +314,8 @@ fn prescan(b: &[u8]) -> Result<Prescan, String> {
         if len == UNDEFINED {
             if is_pixel {
                 encapsulated = true;
-                pixel = PixelData::Encapsulated;
+                pixel_items = 0;
+                pixel = PixelData::Encapsulated { fragments: 0 };
             }
             continue;
         }
@@ -263,6 +335,9 @@ fn prescan(b: &[u8]) -> Result<Prescan, String> {
             pos = end;
         }
     }
+    if let PixelData::Encapsulated { fragments } = &mut pixel {
+        *fragments = pixel_items.saturating_sub(1);
+    }
     Ok(Prescan { ts, pixel })
 }
 
@@ -272,21 +347,63 @@ fn fname(p: &Path) -> String {
         .unwrap_or_else(|| p.display().to_string())
 }
 
-fn get_str(obj: &DefaultDicomObject, tag: Tag) -> Option<String> {
-    let e = obj.element_opt(tag).ok()??;
-    let s = e.to_str().ok()?;
-    let s = s.trim_matches(|c: char| c.is_whitespace() || c == '\0');
-    Some(s.to_string())
+/// The dictionary VR of a standard tag, for elements a writer encoded as UN.
+fn dictionary_vr(tag: Tag) -> Option<VR> {
+    match StandardDataDictionary.by_tag(tag)?.vr() {
+        VirtualVr::Exact(vr) => Some(vr),
+        _ => None,
+    }
 }
 
-fn get_f64s(obj: &DefaultDicomObject, tag: Tag) -> Option<Vec<f64>> {
+/// An element's value as text. Elements encoded as UN (GDCM 3.0 writes standard attributes of
+/// Implicit VR input as UN when it compresses to JPEG 2000) hold the bytes their dictionary VR
+/// would, so those are read as that VR's text.
+fn get_str(obj: &InMemDicomObject, tag: Tag) -> Option<String> {
     let e = obj.element_opt(tag).ok()??;
+    let text = if e.vr() == VR::UN {
+        String::from_utf8_lossy(&e.to_bytes().ok()?).into_owned()
+    } else {
+        e.to_str().ok()?.into_owned()
+    };
+    Some(
+        text.trim_matches(|c: char| c.is_whitespace() || c == '\0')
+            .to_string(),
+    )
+}
+
+fn get_f64s(obj: &InMemDicomObject, tag: Tag) -> Option<Vec<f64>> {
+    let e = obj.element_opt(tag).ok()??;
+    if e.vr() == VR::UN {
+        let text = get_str(obj, tag)?;
+        return text
+            .split('\\')
+            .map(|v| v.trim().parse::<f64>().ok())
+            .collect();
+    }
     e.to_multi_float64().ok()
 }
 
-fn get_int(obj: &DefaultDicomObject, tag: Tag) -> Option<i64> {
+fn get_f64(obj: &InMemDicomObject, tag: Tag) -> Option<f64> {
+    get_f64s(obj, tag).and_then(|v| v.first().copied())
+}
+
+fn get_int(obj: &InMemDicomObject, tag: Tag) -> Option<i64> {
     let e = obj.element_opt(tag).ok()??;
+    if e.vr() == VR::UN {
+        return match dictionary_vr(tag) {
+            Some(VR::US) => {
+                let b = e.to_bytes().ok()?;
+                Some(u16::from_le_bytes([*b.first()?, *b.get(1)?]) as i64)
+            }
+            _ => get_str(obj, tag)?.parse().ok(),
+        };
+    }
     e.to_int::<i64>().ok()
+}
+
+/// The first item of a sequence element.
+fn first_item(obj: &InMemDicomObject, tag: Tag) -> Option<&InMemDicomObject> {
+    obj.element_opt(tag).ok()??.items()?.first()
 }
 
 fn short_err(e: impl std::fmt::Display) -> String {
@@ -302,18 +419,30 @@ fn short_err(e: impl std::fmt::Display) -> String {
     }
 }
 
-/// Reads the header of one file; `Err(reason)` means "skip this file".
-fn read_info(path: &Path) -> Result<SliceInfo, String> {
+/// Opens a whole Part-10 file from bytes already checked by [`prescan`].
+fn parse_file(bytes: &[u8], until_pixel_data: bool) -> Result<DefaultDicomObject, String> {
+    let mut options = OpenFileOptions::new().read_preamble(ReadPreamble::Always);
+    if until_pixel_data {
+        options = options.read_until(tags::PIXEL_DATA);
+    }
+    options
+        .from_reader(bytes)
+        .map_err(|e| format!("not a readable DICOM file ({})", short_err(e)))
+}
+
+/// Reads the header of one file: one [`SliceInfo`] per frame. `Err(reason)` means "skip this
+/// file".
+///
+/// Multi-frame (enhanced) files keep their geometry and rescale in functional groups: each
+/// frame's PerFrameFunctionalGroupsSequence item overrides the SharedFunctionalGroupsSequence,
+/// which overrides the top-level attributes (PS3.3 C.7.6.16).
+fn read_file_slices(path: &Path) -> Result<Vec<SliceInfo>, String> {
     if !has_dicm_magic(path) {
         return Err("not a DICOM file (no DICM marker at byte 128)".into());
     }
     let bytes = std::fs::read(path).map_err(|e| format!("cannot read: {e}"))?;
     let scan = prescan(&bytes)?;
-    let obj = OpenFileOptions::new()
-        .read_preamble(ReadPreamble::Always)
-        .read_until(tags::PIXEL_DATA)
-        .from_reader(&bytes[..])
-        .map_err(|e| format!("not a readable DICOM file ({})", short_err(e)))?;
+    let obj = parse_file(&bytes, true)?;
     drop(bytes);
     let ts = scan.ts;
     let rows = get_int(&obj, tags::ROWS);
@@ -324,10 +453,40 @@ fn read_info(path: &Path) -> Result<SliceInfo, String> {
     if rows <= 0 || cols <= 0 || rows > u32::MAX as i64 || cols > u32::MAX as i64 {
         return Err(format!("invalid image size Rows={rows} Columns={cols}"));
     }
+    let frames = get_int(&obj, tags::NUMBER_OF_FRAMES).unwrap_or(1);
+    if frames < 1 {
+        return Err(format!("invalid NumberOfFrames {frames}"));
+    }
+    if frames > MAX_FRAMES_PER_FILE || (frames as u64) * (rows as u64) * (cols as u64) > MAX_VOXELS
+    {
+        return Err(format!(
+            "NumberOfFrames {frames} × Rows {rows} × Columns {cols} is more than supported \
+             (at most {MAX_FRAMES_PER_FILE} frames and {MAX_VOXELS} voxels)"
+        ));
+    }
+
+    let arr2 = |v: Vec<f64>| -> Option<[f64; 2]> { (v.len() >= 2).then(|| [v[0], v[1]]) };
     let arr3 = |v: Vec<f64>| -> Option<[f64; 3]> { (v.len() >= 3).then(|| [v[0], v[1], v[2]]) };
+    let arr6 = |v: Vec<f64>| -> Option<[f64; 6]> {
+        (v.len() >= 6).then(|| [v[0], v[1], v[2], v[3], v[4], v[5]])
+    };
     let finite = |v: &Vec<f64>| v.iter().all(|x| x.is_finite());
-    Ok(SliceInfo {
+    let shared = first_item(&obj, tags::SHARED_FUNCTIONAL_GROUPS_SEQUENCE);
+    let per_frame: &[InMemDicomObject] = obj
+        .element_opt(tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE)
+        .ok()
+        .flatten()
+        .and_then(|e| e.items())
+        .unwrap_or(&[]);
+    // What every frame shares; the frame loop fills in geometry and rescale.
+    let photometric = get_str(&obj, tags::PHOTOMETRIC_INTERPRETATION).unwrap_or_default();
+    let lossy = ts == JPEG_BASELINE
+        || ts == JPEG_EXTENDED
+        || get_str(&obj, tags::LOSSY_IMAGE_COMPRESSION).as_deref() == Some("01");
+    let file = SliceInfo {
         path: path.to_path_buf(),
+        frame: 0,
+        frames: frames as u32,
         series: get_str(&obj, tags::SERIES_INSTANCE_UID).unwrap_or_default(),
         ts,
         rows: rows as u32,
@@ -337,33 +496,59 @@ fn read_info(path: &Path) -> Result<SliceInfo, String> {
             .clamp(0, 64) as u16,
         bits_stored: get_int(&obj, tags::BITS_STORED).unwrap_or(0).clamp(0, 64) as u16,
         signed: get_int(&obj, tags::PIXEL_REPRESENTATION).unwrap_or(0) == 1,
-        ipp: get_f64s(&obj, tags::IMAGE_POSITION_PATIENT)
-            .filter(finite)
-            .and_then(arr3),
-        iop: get_f64s(&obj, tags::IMAGE_ORIENTATION_PATIENT)
-            .filter(finite)
-            .and_then(|v| (v.len() >= 6).then(|| [v[0], v[1], v[2], v[3], v[4], v[5]])),
-        pixel_spacing: get_f64s(&obj, tags::PIXEL_SPACING)
-            .and_then(|v| (v.len() >= 2).then(|| [v[0], v[1]])),
-        slice_thickness: get_f64s(&obj, tags::SLICE_THICKNESS).and_then(|v| v.first().copied()),
-        slope: get_f64s(&obj, tags::RESCALE_SLOPE)
-            .and_then(|v| v.first().copied())
-            .filter(|s| s.is_finite() && *s != 0.0)
-            .unwrap_or(1.0),
-        intercept: get_f64s(&obj, tags::RESCALE_INTERCEPT)
-            .and_then(|v| v.first().copied())
-            .filter(|s| s.is_finite())
-            .unwrap_or(0.0),
+        monochrome1: photometric == "MONOCHROME1",
+        ipp: None,
+        iop: None,
+        pixel_spacing: None,
+        slice_thickness: None,
+        slope: 1.0,
+        intercept: 0.0,
+        has_rescale: false,
+        lossy,
         modality: get_str(&obj, tags::MODALITY).unwrap_or_default(),
         instance: get_int(&obj, tags::INSTANCE_NUMBER),
         samples_per_pixel: get_int(&obj, tags::SAMPLES_PER_PIXEL)
             .unwrap_or(1)
             .clamp(0, 16) as u16,
-        frames: get_int(&obj, tags::NUMBER_OF_FRAMES)
-            .unwrap_or(1)
-            .clamp(0, u32::MAX as i64) as u32,
         pixel: scan.pixel,
-    })
+    };
+
+    let mut slices = Vec::with_capacity(frames as usize);
+    for frame in 0..frames as usize {
+        // The functional group macro `seq` for this frame: its own item, else the shared one.
+        let group = |seq: Tag| {
+            per_frame
+                .get(frame)
+                .and_then(|item| first_item(item, seq))
+                .or_else(|| shared.and_then(|item| first_item(item, seq)))
+        };
+        let position = group(tags::PLANE_POSITION_SEQUENCE);
+        let orientation = group(tags::PLANE_ORIENTATION_SEQUENCE).unwrap_or(&obj);
+        let measures = group(tags::PIXEL_MEASURES_SEQUENCE).unwrap_or(&obj);
+        let transform = group(tags::PIXEL_VALUE_TRANSFORMATION_SEQUENCE).unwrap_or(&obj);
+        // A top-level ImagePositionPatient locates the first frame only.
+        let ipp = match position {
+            Some(item) => get_f64s(item, tags::IMAGE_POSITION_PATIENT),
+            None if frames == 1 => get_f64s(&obj, tags::IMAGE_POSITION_PATIENT),
+            None => None,
+        };
+        let slope = get_f64(transform, tags::RESCALE_SLOPE);
+        let intercept = get_f64(transform, tags::RESCALE_INTERCEPT);
+        slices.push(SliceInfo {
+            frame: frame as u32,
+            ipp: ipp.filter(finite).and_then(arr3),
+            iop: get_f64s(orientation, tags::IMAGE_ORIENTATION_PATIENT)
+                .filter(finite)
+                .and_then(arr6),
+            pixel_spacing: get_f64s(measures, tags::PIXEL_SPACING).and_then(arr2),
+            slice_thickness: get_f64(measures, tags::SLICE_THICKNESS),
+            slope: slope.filter(|s| s.is_finite() && *s != 0.0).unwrap_or(1.0),
+            intercept: intercept.filter(|s| s.is_finite()).unwrap_or(0.0),
+            has_rescale: slope.is_some() || intercept.is_some(),
+            ..file.clone()
+        });
+    }
+    Ok(slices)
 }
 
 fn list_some(items: &[String]) -> String {
@@ -441,8 +626,8 @@ fn plan_series(label: &Path, files: &[PathBuf]) -> Result<SeriesPlan, VolumeErro
     let mut skipped = Vec::new();
     let mut infos = Vec::new();
     for p in files {
-        match read_info(p) {
-            Ok(i) => infos.push(i),
+        match read_file_slices(p) {
+            Ok(frames) => infos.extend(frames),
             Err(why) => skipped.push(format!("{}: {why}", fname(p))),
         }
     }
@@ -491,14 +676,25 @@ fn plan_series(label: &Path, files: &[PathBuf]) -> Result<SeriesPlan, VolumeErro
 
     // Per-slice checks: transfer syntax, pixel format.
     for s in &slices {
-        if ts_name(&s.ts).is_none() {
-            return Err(VolumeError::unsupported(
+        if let Some(problem) = transfer_syntax_problem(s) {
+            return Err(VolumeError::unsupported(&s.path, problem));
+        }
+        let compressed = TransferSyntaxRegistry
+            .get(&s.ts)
+            .is_some_and(|ts| ts.is_encapsulated_pixel_data());
+        let encapsulated = matches!(s.pixel, PixelData::Encapsulated { .. });
+        if s.pixel != PixelData::Absent && compressed != encapsulated {
+            return Err(VolumeError::format(
                 &s.path,
                 format!(
-                    "transfer syntax {} ({}); only uncompressed Implicit/Explicit VR Little Endian and \
-                     Explicit VR Big Endian are supported",
-                    s.ts,
-                    compressed_ts_name(&s.ts)
+                    "PixelData is {} but transfer syntax {} stores it {}",
+                    if encapsulated {
+                        "encapsulated (compressed)"
+                    } else {
+                        "native (uncompressed)"
+                    },
+                    ts_label(&s.ts),
+                    if compressed { "encapsulated" } else { "native" }
                 ),
             ));
         }
@@ -511,15 +707,6 @@ fn plan_series(label: &Path, files: &[PathBuf]) -> Result<SeriesPlan, VolumeErro
                 ),
             ));
         }
-        if s.frames > 1 {
-            return Err(VolumeError::unsupported(
-                &s.path,
-                format!(
-                    "multi-frame image (NumberOfFrames {}); only one slice per file is supported",
-                    s.frames
-                ),
-            ));
-        }
         if s.bits_alloc != 8 && s.bits_alloc != 16 {
             return Err(VolumeError::unsupported(
                 &s.path,
@@ -528,34 +715,39 @@ fn plan_series(label: &Path, files: &[PathBuf]) -> Result<SeriesPlan, VolumeErro
         }
     }
 
-    // Pixel data present and long enough.
+    // Pixel data present and long enough (native), or one fragment per frame at least
+    // (encapsulated: PS3.5 A.4 puts every frame in its own fragments).
     let mut bad_pixels = Vec::new();
-    for s in &slices {
-        if s.pixel == PixelData::Encapsulated {
-            return Err(VolumeError::unsupported(
-                &s.path,
-                "PixelData is encapsulated (compressed); only native pixel data is supported",
-            ));
-        }
-    }
     slices.retain(|s| {
-        let need = (s.rows as u64)
-            .saturating_mul(s.cols as u64)
-            .saturating_mul(s.bits_alloc as u64 / 8);
+        let need = s.frame_bytes().saturating_mul(s.frame as u64 + 1);
         match s.pixel {
             PixelData::Native { len, .. } if len as u64 >= need => true,
             PixelData::Native { len, .. } => {
                 bad_pixels.push(format!(
-                    "{}: PixelData holds {len} bytes, Columns {} × Rows {} × {} bytes needs {need}",
-                    fname(&s.path),
+                    "{}: PixelData holds {len} bytes, Columns {} × Rows {} × {} bytes{} needs {need}",
+                    s.name(),
                     s.cols,
                     s.rows,
-                    s.bits_alloc / 8
+                    s.bytes_per_sample(),
+                    if s.frames > 1 {
+                        format!(" × {} frames", s.frame + 1)
+                    } else {
+                        String::new()
+                    }
                 ));
                 false
             }
-            _ => {
-                bad_pixels.push(format!("{}: no PixelData element", fname(&s.path)));
+            PixelData::Encapsulated { fragments } if fragments >= s.frames as usize => true,
+            PixelData::Encapsulated { fragments } => {
+                bad_pixels.push(format!(
+                    "{}: encapsulated PixelData holds {fragments} fragments for {} frames",
+                    s.name(),
+                    s.frames
+                ));
+                false
+            }
+            PixelData::Absent => {
+                bad_pixels.push(format!("{}: no PixelData element", s.name()));
                 false
             }
         }
@@ -595,7 +787,7 @@ fn plan_series(label: &Path, files: &[PathBuf]) -> Result<SeriesPlan, VolumeErro
             .map(|s| {
                 format!(
                     "{} is {}×{} ({}-bit)",
-                    fname(&s.path),
+                    s.name(),
                     s.cols,
                     s.rows,
                     s.bits_alloc
@@ -627,28 +819,39 @@ fn plan_series(label: &Path, files: &[PathBuf]) -> Result<SeriesPlan, VolumeErro
             .collect(),
         _ => {
             warnings.push(
-                "ImagePositionPatient/ImageOrientationPatient missing: slices sorted by InstanceNumber, \
-                 slice spacing from SliceThickness"
+                "ImagePositionPatient/ImageOrientationPatient missing: slices sorted by InstanceNumber \
+                 and frame number, slice spacing from SliceThickness"
                     .to_string(),
             );
-            let mut v: Vec<(f64, SliceInfo)> = slices
+            slices.sort_by(|a, b| {
+                a.instance
+                    .cmp(&b.instance)
+                    .then_with(|| a.frame.cmp(&b.frame))
+                    .then_with(|| a.path.cmp(&b.path))
+            });
+            // Single-frame files keep InstanceNumber steps, so that missing instances show as
+            // gaps; frames of multi-frame files are stacked in order.
+            let single_frame_files = slices.iter().all(|s| s.frames == 1);
+            slices
                 .into_iter()
-                .map(|s| {
-                    (
+                .enumerate()
+                .map(|(rank, s)| {
+                    let step = s.slice_thickness.unwrap_or(1.0).abs().max(1e-6);
+                    let ordinal = if single_frame_files {
                         s.instance.unwrap_or(0) as f64
-                            * s.slice_thickness.unwrap_or(1.0).abs().max(1e-6),
-                        s,
-                    )
+                    } else {
+                        rank as f64
+                    };
+                    (ordinal * step, s)
                 })
-                .collect();
-            v.sort_by(|a, b| a.0.total_cmp(&b.0));
-            v
+                .collect()
         }
     };
     positioned.sort_by(|a, b| {
         a.0.total_cmp(&b.0)
             .then_with(|| a.1.instance.cmp(&b.1.instance))
             .then_with(|| a.1.path.cmp(&b.1.path))
+            .then_with(|| a.1.frame.cmp(&b.1.frame))
     });
     if let Some(n) = normal {
         let tilted: Vec<String> = positioned
@@ -659,7 +862,7 @@ fn plan_series(label: &Path, files: &[PathBuf]) -> Result<SeriesPlan, VolumeErro
                 let l = dot(m, m).sqrt().max(1e-12);
                 (dot(m, n) / l - 1.0).abs() > 1e-3
             })
-            .map(|(s, _)| fname(&s.path))
+            .map(|(s, _)| s.name())
             .collect();
         if !tilted.is_empty() {
             warnings.push(format!(
@@ -679,8 +882,8 @@ fn plan_series(label: &Path, files: &[PathBuf]) -> Result<SeriesPlan, VolumeErro
         {
             dups.push(format!(
                 "{} duplicates {} at position {pos:.3}",
-                fname(&s.path),
-                fname(&ls.path)
+                s.name(),
+                ls.name()
             ));
             continue;
         }
@@ -839,20 +1042,31 @@ pub(crate) fn load_dicom_files(label: &Path, files: &[PathBuf]) -> Result<RawVol
     } else {
         Out::F32
     };
+    // Native pixel data is in the files already checked, so the whole volume is reserved at
+    // once. Compressed frames may declare far more than they hold: those grow as they decode.
+    let all_native = kept
+        .iter()
+        .all(|(_, s)| matches!(s.pixel, PixelData::Native { .. }));
+    let reserve = if all_native {
+        count
+    } else {
+        count.min(rows as usize * cols as usize)
+    };
     let mut samples = match out {
-        Out::U8 => Samples::U8(Vec::with_capacity(count)),
-        Out::I8 => Samples::I8(Vec::with_capacity(count)),
-        Out::U16 => Samples::U16(Vec::with_capacity(count)),
-        Out::I16 => Samples::I16(Vec::with_capacity(count)),
-        Out::I32 => Samples::I32(Vec::with_capacity(count)),
-        Out::F32 => Samples::F32(Vec::with_capacity(count)),
+        Out::U8 => Samples::U8(Vec::with_capacity(reserve)),
+        Out::I8 => Samples::I8(Vec::with_capacity(reserve)),
+        Out::U16 => Samples::U16(Vec::with_capacity(reserve)),
+        Out::I16 => Samples::I16(Vec::with_capacity(reserve)),
+        Out::I32 => Samples::I32(Vec::with_capacity(reserve)),
+        Out::F32 => Samples::F32(Vec::with_capacity(reserve)),
     };
 
     // Pass 2: pixel data, slice by slice in sorted order.
     let per_slice = rows as usize * cols as usize;
     let mut stored: Vec<i32> = Vec::new();
+    let mut reader = FrameReader::default();
     for (_, s) in &kept {
-        read_pixels(s, per_slice, bs, &mut stored)?;
+        reader.read(s, per_slice, bs, &mut stored)?;
         let (m, c) = (s.slope, s.intercept);
         match &mut samples {
             Samples::U8(v) => v.extend(stored.iter().map(|&x| x as u8)),
@@ -877,7 +1091,25 @@ pub(crate) fn load_dicom_files(label: &Path, files: &[PathBuf]) -> Result<RawVol
     } else {
         String::new()
     };
-    let ts = ts_name(&first.ts).unwrap_or("uncompressed");
+    let codecs: BTreeSet<String> = kept.iter().map(|(_, s)| ts_name(&s.ts)).collect();
+    let codecs = codecs.into_iter().collect::<Vec<_>>().join(" + ");
+    let lossy: BTreeSet<String> = kept
+        .iter()
+        .filter(|(_, s)| s.lossy)
+        .map(|(_, s)| ts_name(&s.ts))
+        .collect();
+    if !lossy.is_empty() {
+        warnings.push(format!(
+            "pixel data was compressed lossily ({}): values are approximations of the original",
+            lossy.into_iter().collect::<Vec<_>>().join(", ")
+        ));
+    }
+    let one_file = kept.iter().all(|(_, s)| s.path == first.path);
+    let (what, unit) = if one_file && first.frames > 1 {
+        ("DICOM multi-frame image", "frame")
+    } else {
+        ("DICOM series", "slice")
+    };
     Ok(RawVolume {
         dims,
         spacing,
@@ -885,7 +1117,7 @@ pub(crate) fn load_dicom_files(label: &Path, files: &[PathBuf]) -> Result<RawVol
         units,
         modality,
         format: format!(
-            "DICOM series ({} slice{}, {ts})",
+            "{what} ({} {unit}{}, {codecs})",
             kept.len(),
             if kept.len() == 1 { "" } else { "s" }
         ),
@@ -893,68 +1125,306 @@ pub(crate) fn load_dicom_files(label: &Path, files: &[PathBuf]) -> Result<RawVol
     })
 }
 
-/// Reads one slice's pixel data into `out` as stored integer values (masked / sign-extended
-/// to `bits_stored`). The file is re-validated, and the native PixelData value is read directly.
-fn read_pixels(
+/// The file pass 2 is reading, kept across its frames so that a multi-frame file is read and
+/// parsed once.
+struct OpenPixelFile {
+    path: PathBuf,
+    content: PixelContent,
+}
+
+enum PixelContent {
+    /// The whole file and where its native PixelData value lies.
+    Native {
+        bytes: Vec<u8>,
+        offset: usize,
+        len: usize,
+        big_endian: bool,
+    },
+    /// The parsed file, fragments included, for the transfer syntax's decoder.
+    Encapsulated(Box<DefaultDicomObject>),
+}
+
+#[derive(Default)]
+struct FrameReader {
+    open: Option<OpenPixelFile>,
+}
+
+impl FrameReader {
+    /// Reads one slice's pixel data into `out` as stored integer values: sign-extended from
+    /// `bits_stored` (signed), masked to it (native unsigned) or clamped to it (decoded
+    /// unsigned), and MONOCHROME1 turned around when there is no rescale. The file is
+    /// re-validated before its pixel data is read or decoded.
+    fn read(
+        &mut self,
+        s: &SliceInfo,
+        n: usize,
+        bits_stored: u16,
+        out: &mut Vec<i32>,
+    ) -> Result<(), VolumeError> {
+        out.clear();
+        let content = self.open(s)?;
+        let bytes_per = s.bytes_per_sample();
+        let need = n * bytes_per;
+        let (data, big_endian, decoded): (Cow<[u8]>, bool, bool) = match content {
+            PixelContent::Native {
+                bytes,
+                offset,
+                len,
+                big_endian,
+            } => {
+                let start = s.frame as usize * need;
+                if start + need > *len {
+                    return Err(VolumeError::format(
+                        &s.path,
+                        format!(
+                            "PixelData is truncated: expected Columns {} × Rows {} × {bytes_per} bytes = \
+                             {need} bytes{}, found {}",
+                            s.cols,
+                            s.rows,
+                            if s.frames > 1 {
+                                format!(" for frame {}", s.frame + 1)
+                            } else {
+                                String::new()
+                            },
+                            len.saturating_sub(start)
+                        ),
+                    ));
+                }
+                let at = offset + start;
+                (Cow::Borrowed(&bytes[at..at + need]), *big_endian, false)
+            }
+            PixelContent::Encapsulated(object) => {
+                (Cow::Owned(decode_frame(s, object, need)?), false, true)
+            }
+        };
+        let shift = 32 - bits_stored as u32;
+        let max_unsigned = (1u32 << bits_stored) - 1;
+        let fix = |raw: u32| -> i32 {
+            if s.signed {
+                ((raw << shift) as i32) >> shift
+            } else if decoded {
+                // Codecs may code at more bits than stored (GDCM writes 12-bit data as 16-bit
+                // JPEG 2000), and lossy ones then overshoot: clamp, as masking would wrap
+                // 4096 to 0. Only native data has unused high bits to mask (PS3.5 8.1.1).
+                raw.min(max_unsigned) as i32
+            } else {
+                ((raw << shift) >> shift) as i32
+            }
+        };
+        out.reserve_exact(n);
+        let data = &data[..need];
+        if bytes_per == 1 {
+            out.extend(data.iter().map(|&x| fix(x as u32)));
+        } else if big_endian {
+            out.extend(
+                data.chunks_exact(2)
+                    .map(|c| fix(u16::from_be_bytes([c[0], c[1]]) as u32)),
+            );
+        } else {
+            out.extend(
+                data.chunks_exact(2)
+                    .map(|c| fix(u16::from_le_bytes([c[0], c[1]]) as u32)),
+            );
+        }
+        if s.monochrome1 && !s.has_rescale {
+            invert_monochrome1(out, bits_stored, s.signed);
+        }
+        Ok(())
+    }
+
+    /// The pixel content of `s`'s file, reading and checking the file unless it is open.
+    fn open(&mut self, s: &SliceInfo) -> Result<&PixelContent, VolumeError> {
+        // Taking the previous file out drops it before the next one is read.
+        let open = match self.open.take().filter(|open| open.path == s.path) {
+            Some(open) => open,
+            None => OpenPixelFile {
+                path: s.path.clone(),
+                content: read_pixel_content(&s.path)?,
+            },
+        };
+        Ok(&self.open.insert(open).content)
+    }
+}
+
+/// Reads and checks a whole file for its pixel data.
+fn read_pixel_content(path: &Path) -> Result<PixelContent, VolumeError> {
+    let bytes =
+        std::fs::read(path).map_err(|e| VolumeError::io(path, "reading the DICOM file", e))?;
+    let scan = prescan(&bytes).map_err(|m| VolumeError::format(path, m))?;
+    match scan.pixel {
+        PixelData::Native { offset, len } => Ok(PixelContent::Native {
+            bytes,
+            offset,
+            len,
+            big_endian: scan.ts == EXPLICIT_VR_BIG_ENDIAN,
+        }),
+        PixelData::Encapsulated { .. } => {
+            let object = parse_file(&bytes, false).map_err(|m| VolumeError::format(path, m))?;
+            Ok(PixelContent::Encapsulated(Box::new(object)))
+        }
+        PixelData::Absent => Err(VolumeError::format(
+            path,
+            "DICOM file has no PixelData element",
+        )),
+    }
+}
+
+/// Decodes frame `s.frame` of an encapsulated file with dicom-rs's decoder for its transfer
+/// syntax: `need` bytes of little-endian samples, BitsAllocated wide.
+fn decode_frame(
     s: &SliceInfo,
-    n: usize,
-    bits_stored: u16,
-    out: &mut Vec<i32>,
-) -> Result<(), VolumeError> {
-    out.clear();
-    let bytes = std::fs::read(&s.path)
-        .map_err(|e| VolumeError::io(&s.path, "reading the DICOM file", e))?;
-    let scan = prescan(&bytes).map_err(|m| VolumeError::format(&s.path, m))?;
-    let bytes_per = s.bits_alloc as usize / 8;
-    let need = n * bytes_per;
-    let data = match scan.pixel {
-        PixelData::Native { offset, len } if len >= need => &bytes[offset..offset + need],
-        PixelData::Native { len, .. } => {
+    object: &DefaultDicomObject,
+    need: usize,
+) -> Result<Vec<u8>, VolumeError> {
+    let ts = object.meta().transfer_syntax();
+    let reader = TransferSyntaxRegistry
+        .get(ts)
+        .and_then(|t| t.pixel_data_reader())
+        .ok_or_else(|| {
+            VolumeError::unsupported(
+                &s.path,
+                format!(
+                    "transfer syntax {}: no decoder for it is built in",
+                    ts_label(ts)
+                ),
+            )
+        })?;
+    let what = if s.frames > 1 {
+        format!("frame {} of {}", s.frame + 1, s.frames)
+    } else {
+        "the image".to_string()
+    };
+    let Some(data) = object.frame_pixel_data(s.frame) else {
+        return Err(VolumeError::format(
+            &s.path,
+            format!("{what} has no pixel data fragment (or no offset table entry)"),
+        ));
+    };
+    let frame = OneFrame {
+        file: object,
+        data: &data,
+    };
+    // The codecs index buffers with sizes taken from the stream and can panic on malformed
+    // input; a damaged file must give an error, not bring the server down.
+    let decoded = catch_unwind(AssertUnwindSafe(|| {
+        let mut buf = Vec::new();
+        reader.decode_frame(&frame, 0, &mut buf).map(|()| buf)
+    }));
+    let buf = match decoded {
+        Ok(Ok(buf)) => buf,
+        Ok(Err(e)) => {
             return Err(VolumeError::format(
                 &s.path,
                 format!(
-                    "PixelData is truncated: expected Columns {} × Rows {} × {bytes_per} bytes = {need} bytes, found {len}",
-                    s.cols, s.rows
+                    "decoding {what} ({}) failed: {}",
+                    ts_label(ts),
+                    short_err(e)
                 ),
             ));
         }
-        PixelData::Encapsulated => {
-            return Err(VolumeError::unsupported(
-                &s.path,
-                "PixelData is encapsulated (compressed); only native pixel data is supported",
-            ));
-        }
-        PixelData::Absent => {
+        Err(panic) => {
+            let why = panic
+                .downcast_ref::<String>()
+                .map(String::as_str)
+                .or_else(|| panic.downcast_ref::<&str>().copied())
+                .unwrap_or("no message");
             return Err(VolumeError::format(
                 &s.path,
-                "DICOM file has no PixelData element",
+                format!(
+                    "decoding {what} ({}) failed: the decoder crashed ({})",
+                    ts_label(ts),
+                    short_err(why)
+                ),
             ));
         }
     };
-    let big = scan.ts == "1.2.840.10008.1.2.2";
-    let shift = 32 - bits_stored as u32;
-    let fix = |raw: u32| -> i32 {
-        if s.signed {
-            ((raw << shift) as i32) >> shift
-        } else {
-            ((raw << shift) >> shift) as i32
-        }
-    };
-    out.reserve_exact(n);
-    if bytes_per == 1 {
-        out.extend(data.iter().map(|&x| fix(x as u32)));
-    } else if big {
-        out.extend(
-            data.chunks_exact(2)
-                .map(|c| fix(u16::from_be_bytes([c[0], c[1]]) as u32)),
-        );
-    } else {
-        out.extend(
-            data.chunks_exact(2)
-                .map(|c| fix(u16::from_le_bytes([c[0], c[1]]) as u32)),
-        );
+    if buf.len() < need {
+        return Err(VolumeError::format(
+            &s.path,
+            format!(
+                "decoding {what} ({}) gave {} bytes; Columns {} × Rows {} × {} bytes needs {need}",
+                ts_label(ts),
+                buf.len(),
+                s.cols,
+                s.rows,
+                s.bytes_per_sample()
+            ),
+        ));
     }
-    Ok(())
+    Ok(buf)
+}
+
+/// One frame of an encapsulated file, presented to a decoder as a single-frame object. The JPEG
+/// decoder copies all of an object's fragments for every frame it decodes, which would make a
+/// multi-frame file cost frames × file size.
+struct OneFrame<'a> {
+    file: &'a DefaultDicomObject,
+    data: &'a [u8],
+}
+
+impl PixelDataObject for OneFrame<'_> {
+    fn transfer_syntax_uid(&self) -> &str {
+        self.file.transfer_syntax_uid()
+    }
+
+    fn rows(&self) -> Option<u16> {
+        self.file.rows()
+    }
+
+    fn cols(&self) -> Option<u16> {
+        self.file.cols()
+    }
+
+    fn samples_per_pixel(&self) -> Option<u16> {
+        self.file.samples_per_pixel()
+    }
+
+    fn bits_allocated(&self) -> Option<u16> {
+        self.file.bits_allocated()
+    }
+
+    fn bits_stored(&self) -> Option<u16> {
+        self.file.bits_stored()
+    }
+
+    fn photometric_interpretation(&self) -> Option<&str> {
+        self.file.photometric_interpretation()
+    }
+
+    fn number_of_frames(&self) -> Option<u32> {
+        Some(1)
+    }
+
+    fn number_of_fragments(&self) -> Option<u32> {
+        Some(1)
+    }
+
+    fn fragment(&self, fragment: usize) -> Option<Cow<'_, [u8]>> {
+        (fragment == 0).then_some(Cow::Borrowed(self.data))
+    }
+
+    fn offset_table(&self) -> Option<Cow<'_, [u32]>> {
+        Some(Cow::Borrowed(&[]))
+    }
+
+    fn raw_pixel_data(&self) -> Option<RawPixelData> {
+        Some(RawPixelData {
+            fragments: vec![self.data.to_vec()].into(),
+            offset_table: Default::default(),
+        })
+    }
+}
+
+/// MONOCHROME1 (PS3.3 C.7.6.3.1.2) displays the minimum as white. PS3.4 N.2 applies that
+/// inversion last, after the Modality LUT (rescale), so rescaled values such as HU mean the same
+/// under MONOCHROME1 and MONOCHROME2 and are left alone. Without a rescale the values carry no
+/// units, only their display polarity, so they are mirrored within the stored range (unsigned:
+/// (2^BitsStored − 1) − v; signed: −1 − v): larger then means brighter, as in MONOCHROME2.
+fn invert_monochrome1(values: &mut [i32], bits_stored: u16, signed: bool) {
+    let max_unsigned = ((1i64 << bits_stored) - 1) as i32;
+    for v in values {
+        *v = if signed { -1 - *v } else { max_unsigned - *v };
+    }
 }
 
 #[cfg(test)]
@@ -990,6 +1460,43 @@ mod tests {
             assert_eq!(s.pixel_spacing, Some([0.78125, 0.78125]));
             assert_eq!((s.slope, s.intercept), (1.0, -1000.0));
         }
+    }
+
+    #[test]
+    fn monochrome1_is_mirrored_within_the_stored_range() {
+        let mut unsigned = vec![0, 1, 4094, 4095];
+        invert_monochrome1(&mut unsigned, 12, false);
+        assert_eq!(unsigned, vec![4095, 4094, 1, 0]);
+        let mut signed = vec![-128, -1, 0, 127];
+        invert_monochrome1(&mut signed, 8, true);
+        assert_eq!(signed, vec![127, 0, -1, -128]);
+    }
+
+    #[test]
+    fn attributes_encoded_as_un_are_read_by_their_dictionary_vr() {
+        use dicom_core::{DataElement, PrimitiveValue};
+        let mut obj = InMemDicomObject::new_empty();
+        let un = |bytes: &[u8]| PrimitiveValue::U8(bytes.to_vec().into());
+        obj.put(DataElement::new(
+            tags::RESCALE_INTERCEPT,
+            VR::UN,
+            un(b"-1000 "),
+        ));
+        obj.put(DataElement::new(
+            tags::PIXEL_SPACING,
+            VR::UN,
+            un(b"0.5\\0.25"),
+        ));
+        obj.put(DataElement::new(tags::INSTANCE_NUMBER, VR::UN, un(b"42")));
+        obj.put(DataElement::new(
+            tags::ROWS,
+            VR::UN,
+            un(&512u16.to_le_bytes()),
+        ));
+        assert_eq!(get_f64(&obj, tags::RESCALE_INTERCEPT), Some(-1000.0));
+        assert_eq!(get_f64s(&obj, tags::PIXEL_SPACING), Some(vec![0.5, 0.25]));
+        assert_eq!(get_int(&obj, tags::INSTANCE_NUMBER), Some(42));
+        assert_eq!(get_int(&obj, tags::ROWS), Some(512));
     }
 
     #[test]

@@ -388,7 +388,7 @@ fn dicom_errors_are_clear() {
         "{e}"
     );
 
-    // Compressed transfer syntax: clear "unsupported" error naming it.
+    // A compressed transfer syntax over native pixel data: a format error naming both.
     let rle = tmp.path().join("rle.dcm");
     Synth::new(0.0, vec![1; 6]).write(&rle);
     let mut b = std::fs::read(&rle).unwrap();
@@ -399,6 +399,9 @@ fn dicom_errors_are_clear() {
     b[at..at + 20].copy_from_slice(b"1.2.840.10008.1.2.5\0");
     std::fs::write(&rle, &b).unwrap();
     let e = load_raw(&rle).unwrap_err();
-    assert!(matches!(e, VolumeError::Unsupported { .. }), "{e}");
-    assert!(e.to_string().contains("RLE Lossless"), "{e}");
+    assert!(matches!(e, VolumeError::Format { .. }), "{e}");
+    assert!(
+        e.to_string().contains("RLE Lossless") && e.to_string().contains("native"),
+        "{e}"
+    );
 }
