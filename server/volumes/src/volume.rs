@@ -143,7 +143,13 @@ impl Volume {
         if !(m.is_finite() && m > 0.0) || e.iter().any(|v| !v.is_finite() || *v <= 0.0) {
             return [1.0; 3];
         }
-        e.map(|v| (v / m) as f32)
+        let extent = e.map(|v| (v / m) as f32);
+        // A side that rounds to nothing (or next to it) would make a box without thickness;
+        // loaders refuse such spacings, a volume built by hand gets the unit cube.
+        if extent.iter().any(|v| !v.is_normal()) {
+            return [1.0; 3];
+        }
+        extent
     }
 
     /// Box-filtered downsample so that no axis exceeds `max_dim` (0 is treated as 1). All axes
@@ -212,8 +218,11 @@ impl Volume {
 }
 
 /// Quantizes through a lookup table indexed by the sample's bit pattern (8/16-bit types).
-fn quantize_lut<T: Copy>(v: &[T], lut: &[u16], idx: impl Fn(T) -> usize) -> Vec<u16> {
-    v.iter().map(|&x| lut[idx(x)]).collect()
+/// Takes the samples by value: 16-bit samples are rewritten in their own allocation (std's
+/// in-place `collect` for same-size types), so a CT's peak memory is its volume once, not
+/// twice (`voxlight bench load` measures it).
+fn quantize_lut<T: Copy>(v: Vec<T>, lut: &[u16], idx: impl Fn(T) -> usize) -> Vec<u16> {
+    v.into_iter().map(|x| lut[idx(x)]).collect()
 }
 
 pub(crate) fn normalize(raw: RawVolume, name: &str) -> Volume {
@@ -233,7 +242,7 @@ pub(crate) fn normalize(raw: RawVolume, name: &str) -> Volume {
             ((x - min) * scale).round().clamp(0.0, 65535.0) as u16
         }
     };
-    let data: Vec<u16> = match &raw.samples {
+    let data: Vec<u16> = match raw.samples {
         Samples::U8(v) => {
             let lut: Vec<u16> = (0..256).map(|i| q(i as f64)).collect();
             quantize_lut(v, &lut, |x| x as usize)
@@ -250,11 +259,11 @@ pub(crate) fn normalize(raw: RawVolume, name: &str) -> Volume {
             let lut: Vec<u16> = (0..65536).map(|i| q(i as u16 as i16 as f64)).collect();
             quantize_lut(v, &lut, |x| x as u16 as usize)
         }
-        Samples::U32(v) => v.iter().map(|&x| q(x as f64)).collect(),
-        Samples::I32(v) => v.iter().map(|&x| q(x as f64)).collect(),
+        Samples::U32(v) => v.into_iter().map(|x| q(x as f64)).collect(),
+        Samples::I32(v) => v.into_iter().map(|x| q(x as f64)).collect(),
         Samples::F32(v) => v
-            .iter()
-            .map(|&x| {
+            .into_iter()
+            .map(|x| {
                 if x.is_nan() {
                     bad += 1;
                 }
@@ -262,8 +271,8 @@ pub(crate) fn normalize(raw: RawVolume, name: &str) -> Volume {
             })
             .collect(),
         Samples::F64(v) => v
-            .iter()
-            .map(|&x| {
+            .into_iter()
+            .map(|x| {
                 if x.is_nan() {
                     bad += 1;
                 }
@@ -276,7 +285,6 @@ pub(crate) fn normalize(raw: RawVolume, name: &str) -> Volume {
             "{bad} NaN samples were mapped to the minimum value {min}"
         ));
     }
-    drop(raw.samples);
     let histogram = compute_histogram(&data);
     Volume {
         name: name.to_string(),
@@ -296,6 +304,16 @@ pub(crate) fn normalize(raw: RawVolume, name: &str) -> Volume {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn sixteen_bit_samples_are_quantized_in_their_own_allocation() {
+        let samples: Vec<i16> = (0..4096).map(|i| i as i16 - 1000).collect();
+        let before = samples.as_ptr() as usize;
+        let lut: Vec<u16> = (0..65536).map(|i| i as u16).collect();
+        let out = quantize_lut(samples, &lut, |x| x as u16 as usize);
+        assert_eq!(out.as_ptr() as usize, before, "a second 16-bit buffer was allocated");
+        assert_eq!(out[1000], 0);
+    }
 
     fn raw(samples: Samples, dims: [u32; 3]) -> RawVolume {
         RawVolume {
