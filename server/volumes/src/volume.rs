@@ -311,7 +311,11 @@ mod tests {
         let before = samples.as_ptr() as usize;
         let lut: Vec<u16> = (0..65536).map(|i| i as u16).collect();
         let out = quantize_lut(samples, &lut, |x| x as u16 as usize);
-        assert_eq!(out.as_ptr() as usize, before, "a second 16-bit buffer was allocated");
+        assert_eq!(
+            out.as_ptr() as usize,
+            before,
+            "a second 16-bit buffer was allocated"
+        );
         assert_eq!(out[1000], 0);
     }
 
