@@ -330,6 +330,14 @@ conn.addEventListener('message', (/** @type {any} */ e) => {
       toast('error', err.code, err.message);
       break;
     }
+    case 'loading': {
+      // A dataset arriving from a PACS: parts (instances) fetched so far.
+      const what = `${m.dataset}: ${m.done} of ${m.total} images received`;
+      if (!conn.ready) showOverlay('Loading the dataset…', what, false);
+      else $('dataset-info').textContent = `loading ${what}`;
+      vx.loading = { dataset: String(m.dataset), done: Number(m.done), total: Number(m.total) };
+      break;
+    }
     case 'draining':
       serverDraining = true;
       toast('info', 'server restarting', String(m.message || `this session ends in ${m.seconds_left} s`));

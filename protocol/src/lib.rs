@@ -408,6 +408,14 @@ pub enum ServerMessage {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         by: Option<ViewerInfo>,
     },
+    /// A dataset is arriving (a series fetched from a PACS, instance by instance): `done` of
+    /// `total` parts are in. Sent before `welcome` to the viewer whose `hello` opens it, and to
+    /// every viewer of a session switching to it; `dataset_loaded` or `welcome` follows.
+    Loading {
+        dataset: String,
+        done: u32,
+        total: u32,
+    },
     /// Progress of the current picture, sent with frames at a modest rate.
     Stats(Stats),
     Error {

@@ -24,6 +24,8 @@ pub enum DatasetError {
     Load { name: String, source: VolumeError },
     #[error("data folder {0} does not exist or is not a folder")]
     NoDataDir(PathBuf),
+    #[error(transparent)]
+    DicomWeb(#[from] crate::dicomweb::DicomWebError),
 }
 
 /// What a volume must fit to be uploaded: the GPU's largest 3D texture edge and a share of the
@@ -78,14 +80,17 @@ impl GpuFit {
 
 struct Entry {
     info: DatasetInfo,
-    /// None for phantoms.
+    /// None for phantoms and remote series.
     path: Option<PathBuf>,
+    /// A series of the DICOMweb source.
+    remote: Option<crate::dicomweb::RemoteSeries>,
 }
 
 /// Every dataset by name, with loaded volumes shared while anyone uses them.
 pub struct Catalog {
     entries: Vec<Entry>,
     fit: GpuFit,
+    dicomweb: Option<crate::dicomweb::DicomWeb>,
     loaded: Mutex<HashMap<String, Weak<Volume>>>,
     details: Mutex<HashMap<String, DatasetDetails>>,
 }
@@ -102,6 +107,7 @@ impl Catalog {
                     details: None,
                 },
                 path: None,
+                remote: None,
             })
             .collect();
         if let Some(dir) = data_dir {
@@ -121,15 +127,39 @@ impl Catalog {
                         details: None,
                     },
                     path: Some(path),
+                    remote: None,
                 });
             }
         }
         Ok(Self {
             entries,
             fit,
+            dicomweb: None,
             loaded: Mutex::new(HashMap::new()),
             details: Mutex::new(HashMap::new()),
         })
+    }
+
+    /// Adds every series a DICOMweb endpoint lists (QIDO-RS, now; not refreshed later).
+    pub fn with_dicomweb(
+        mut self,
+        source: crate::dicomweb::DicomWeb,
+    ) -> Result<Self, DatasetError> {
+        let series = source.list_series()?;
+        tracing::info!(series = series.len(), "DICOMweb series listed");
+        for remote in series {
+            self.entries.push(Entry {
+                info: DatasetInfo {
+                    name: remote.dataset_name(),
+                    kind: "dicomweb".into(),
+                    details: None,
+                },
+                path: None,
+                remote: Some(remote),
+            });
+        }
+        self.dicomweb = Some(source);
+        Ok(self)
     }
 
     pub fn contains(&self, name: &str) -> bool {
@@ -154,7 +184,8 @@ impl Catalog {
     /// Loads every dataset once (one at a time, dropping each volume again) so that its details
     /// are known. Blocking: run on its own thread.
     pub fn preload(&self) {
-        for entry in &self.entries {
+        // Remote series are fetched when someone opens them, never all at start-up.
+        for entry in self.entries.iter().filter(|e| e.remote.is_none()) {
             let name = &entry.info.name;
             let known = self
                 .details
@@ -173,6 +204,52 @@ impl Catalog {
 
     /// Loads (or shares the already loaded) volume. Blocking: call from `spawn_blocking`.
     pub fn load(&self, name: &str) -> Result<Arc<Volume>, DatasetError> {
+        self.load_with_progress(name, &|_, _| {})
+    }
+
+    /// Fetches a remote series into a private temporary folder (reporting instances fetched
+    /// of the total) and reads it as a local series; the folder goes when this returns.
+    fn load_remote(
+        &self,
+        remote: &crate::dicomweb::RemoteSeries,
+        name: &str,
+        progress: &(dyn Fn(u32, u32) + Sync),
+    ) -> Result<Volume, DatasetError> {
+        let source = self
+            .dicomweb
+            .as_ref()
+            .ok_or_else(|| DatasetError::Unknown(name.to_owned()))?;
+        let load_error = |source| DatasetError::Load {
+            name: name.to_owned(),
+            source,
+        };
+        let folder = tempfile::Builder::new()
+            .prefix("voxlight-dicomweb-")
+            .tempdir()
+            .map_err(|e| {
+                load_error(VolumeError::Io {
+                    path: std::env::temp_dir(),
+                    what: "making a folder for the fetched series".into(),
+                    source: e,
+                })
+            })?;
+        let started = std::time::Instant::now();
+        let files = source.fetch_series(remote, folder.path(), progress)?;
+        tracing::info!(
+            dataset = name,
+            files,
+            ms = started.elapsed().as_millis() as u64,
+            "DICOMweb series fetched"
+        );
+        voxlight_volumes::load(folder.path()).map_err(load_error)
+    }
+
+    /// `load`, calling `progress(done, total)` while a remote series arrives (instances).
+    pub fn load_with_progress(
+        &self,
+        name: &str,
+        progress: &(dyn Fn(u32, u32) + Sync),
+    ) -> Result<Arc<Volume>, DatasetError> {
         let entry = self
             .entries
             .iter()
@@ -187,14 +264,18 @@ impl Catalog {
             return Ok(volume);
         }
         let started = std::time::Instant::now();
-        let result = match &entry.path {
-            Some(path) => voxlight_volumes::load(path),
-            None => voxlight_volumes::phantom(name.trim_start_matches("phantom:"), PHANTOM_SIZE),
-        };
-        let mut volume = result.map_err(|source| DatasetError::Load {
+        let load_error = |source| DatasetError::Load {
             name: name.to_owned(),
             source,
-        })?;
+        };
+        let mut volume = match (&entry.path, &entry.remote) {
+            (Some(path), _) => voxlight_volumes::load(path).map_err(load_error)?,
+            (None, Some(remote)) => self.load_remote(remote, name, progress)?,
+            (None, None) => {
+                voxlight_volumes::phantom(name.trim_start_matches("phantom:"), PHANTOM_SIZE)
+                    .map_err(load_error)?
+            }
+        };
         volume.name = name.to_owned();
         let downsampled = self.fit.reduction(volume.dims).map(|(factor, reason)| {
             let original_dims = volume.dims;

@@ -10,6 +10,7 @@ pub mod bench_load;
 pub mod bench_manylight;
 pub mod bench_vtk;
 pub mod datasets;
+pub mod dicomweb;
 pub mod encode;
 pub mod hub;
 pub mod lifecycle;
@@ -89,12 +90,23 @@ pub struct ServerConfig {
     /// The path prefix under which a router reaches this very process (`/p/3/`, stripped by
     /// the router); sent to viewers so their share links and reconnects come back here.
     pub route_prefix: Option<String>,
+    /// A PACS whose series are offered as datasets (DICOMweb: QIDO-RS and WADO-RS).
+    pub dicomweb: Option<DicomWebSource>,
     /// GPU bytes one volume may take; a larger one is rendered from a downsampled copy (the
     /// viewer is told). Half the GPU memory budget when unset.
     pub max_volume_bytes: Option<u64>,
     /// How often viewers get a WebSocket ping (keeps proxies from cutting a quiet, converged
     /// viewer); `session::PING_INTERVAL` when unset.
     pub ping_interval: Option<std::time::Duration>,
+}
+
+/// Where `--dicomweb` points.
+#[derive(Debug, Clone)]
+pub struct DicomWebSource {
+    /// The DICOMweb root, e.g. `https://pacs.example.org/dicom-web`.
+    pub url: String,
+    /// A file holding `user:password` or `Bearer <token>` (never logged).
+    pub credentials: Option<PathBuf>,
 }
 
 /// Default global GPU memory budget: 4 GiB, which fits most GPUs that run this (a larger
@@ -139,7 +151,17 @@ impl Server {
                 [1, 1, 1],
             ),
         };
-        let catalog = Arc::new(Catalog::new(config.data_dir.as_deref(), fit)?);
+        let mut catalog = Catalog::new(config.data_dir.as_deref(), fit)?;
+        if let Some(source) = &config.dicomweb {
+            let authorization = source
+                .credentials
+                .as_deref()
+                .map(dicomweb::read_credentials)
+                .transpose()?;
+            catalog =
+                catalog.with_dicomweb(dicomweb::DicomWeb::new(&source.url, authorization)?)?;
+        }
+        let catalog = Arc::new(catalog);
         let default_dataset = config
             .default_dataset
             .clone()

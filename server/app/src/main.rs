@@ -89,6 +89,14 @@ enum Command {
         /// and the viewer is told. Default: half of --gpu-memory-mib.
         #[arg(long)]
         max_volume_mib: Option<u64>,
+        /// A PACS's DICOMweb root (e.g. https://pacs.example.org/dicom-web): its series are
+        /// listed (QIDO-RS) at start-up and fetched (WADO-RS) when a viewer opens one.
+        #[arg(long)]
+        dicomweb: Option<String>,
+        /// A file with the DICOMweb credentials: `user:password` or `Bearer <token>` (first
+        /// line that is not blank or a `#` comment; never logged).
+        #[arg(long, requires = "dicomweb")]
+        dicomweb_credentials: Option<PathBuf>,
     },
     /// Scripted viewers against a running server: each session has an editor that orbits
     /// the camera and edits the TF, and watchers that join it. Reports input-to-frame
@@ -321,6 +329,8 @@ fn run() -> anyhow::Result<()> {
             route_prefix,
             drain_timeout_s,
             max_volume_mib,
+            dicomweb,
+            dicomweb_credentials,
         } => {
             if let Some(file) = tokens_file {
                 let text = std::fs::read_to_string(&file)
@@ -353,6 +363,10 @@ fn run() -> anyhow::Result<()> {
                     route_prefix,
                     ping_interval: None,
                     max_volume_bytes: max_volume_mib.map(|m| m.saturating_mul(1 << 20)),
+                    dicomweb: dicomweb.map(|url| voxlight_server::DicomWebSource {
+                        url,
+                        credentials: dicomweb_credentials,
+                    }),
                 },
                 Duration::from_secs(drain_timeout_s),
             )

@@ -9,7 +9,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU8, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
-use axum::extract::ws::{Message, Utf8Bytes, WebSocket};
+use axum::extract::ws::{CloseFrame, Message, Utf8Bytes, WebSocket, close_code};
 use futures_util::stream::{SplitSink, SplitStream};
 use futures_util::{SinkExt, StreamExt};
 use tokio::sync::broadcast::error::RecvError;
@@ -29,6 +29,8 @@ use crate::hub::{EVENT_BUFFER, Encoding, SessionCore, SharedSession};
 use crate::metrics::Metrics;
 use crate::render_service::{Command, SessionId};
 
+/// Range of `quality.iterations`.
+pub const MAX_ITERATIONS: u32 = 65536;
 /// How long a client may take to say `hello`.
 const HELLO_TIMEOUT: Duration = Duration::from_secs(30);
 /// Outgoing text messages queued per connection before the reader waits.
@@ -44,6 +46,11 @@ const SEND_TIMEOUT: Duration = Duration::from_secs(30);
 /// A WebSocket ping this often by default: a converged picture sends nothing else, and proxies
 /// cut quiet connections (nginx after 60 s by default, cloud load balancers after 30 s or more).
 pub const PING_INTERVAL: Duration = Duration::from_secs(20);
+/// How long a connection closed for a transport error (e.g. 1009) stays open after its close
+/// frame. The rest of the offending message is still unread in the socket, and closing a
+/// socket with unread data resets the connection: a reset that reaches the client before it
+/// has read the close frame destroys the frame, and the client sees a dropped connection.
+const CLOSE_LINGER: Duration = Duration::from_secs(2);
 
 static NEXT_SESSION: AtomicU64 = AtomicU64::new(1);
 
@@ -107,6 +114,91 @@ fn parse(message: Message) -> Result<Option<ClientMessage>, Reply> {
     }
 }
 
+/// Every check of a client message that needs no session state: ranges, finite numbers,
+/// list lengths. `handle_message` runs it before touching the session (so a refused message
+/// has no effect at all); what depends on the session or the GPU (the viewport's pixel budget,
+/// technique names, dataset names, `hello`'s new-session fields) is checked where it is used.
+pub fn validate_message(message: &ClientMessage) -> Result<(), Reply> {
+    match message {
+        ClientMessage::Hello { max_in_flight, .. } => match max_in_flight {
+            Some(n) if !(1..=MAX_FRAMES_IN_FLIGHT).contains(n) => Err(Reply::bad(format!(
+                "max_in_flight must be in 1..={MAX_FRAMES_IN_FLIGHT}, got {n}"
+            ))),
+            _ => Ok(()),
+        },
+        ClientMessage::Camera(camera) => CameraBasis::new(camera).map(|_| ()).map_err(Reply::bad),
+        ClientMessage::Tf(tf) => voxlight_engine::tf::validate(tf).map_err(Reply::bad),
+        ClientMessage::Lights { lights } => validate_lights(lights).map_err(Reply::bad),
+        ClientMessage::Viewport(viewport) => validate_viewport(viewport).map_err(Reply::bad),
+        ClientMessage::Params {
+            density_scale,
+            g,
+            exposure,
+        } => {
+            // Each parameter has its own range: the given ones are checked beside defaults.
+            let d = RenderParams::default();
+            validate_params(&RenderParams {
+                density_scale: density_scale.unwrap_or(d.density_scale),
+                g: g.unwrap_or(d.g),
+                exposure: exposure.unwrap_or(d.exposure),
+            })
+            .map_err(Reply::bad)
+        }
+        ClientMessage::Quality {
+            jpeg_quality,
+            iterations,
+        } => {
+            if let Some(q) = jpeg_quality
+                && !(1..=100).contains(q)
+            {
+                return Err(Reply::bad(format!(
+                    "jpeg_quality must be in 1..=100, got {q}"
+                )));
+            }
+            if let Some(n) = iterations
+                && !(1..=MAX_ITERATIONS).contains(n)
+            {
+                return Err(Reply::bad(format!(
+                    "iterations must be in 1..={MAX_ITERATIONS}, got {n}"
+                )));
+            }
+            Ok(())
+        }
+        ClientMessage::Technique {
+            options: Some(options),
+            ..
+        } => voxlight_engine::technique_options::validate(options).map_err(Reply::bad),
+        ClientMessage::Technique { options: None, .. }
+        | ClientMessage::Ack { .. }
+        | ClientMessage::Name { .. }
+        | ClientMessage::Dataset { .. } => Ok(()),
+    }
+}
+
+/// The close frame for a connection whose transport failed, when the peer should get one:
+/// a message over the transport limit (1009), text that is not UTF-8 (1007), a frame that
+/// breaks the WebSocket protocol (1002). `None` for a connection that is simply gone.
+fn transport_close(error: &axum::Error) -> Option<CloseFrame> {
+    use std::error::Error as _;
+    use tungstenite::error::{CapacityError, Error as WsError, ProtocolError};
+    let (code, reason) = match error.source()?.downcast_ref::<WsError>()? {
+        WsError::Capacity(CapacityError::MessageTooLong { size, max_size }) => (
+            close_code::SIZE,
+            format!("message of {size} bytes exceeds the transport limit of {max_size}"),
+        ),
+        WsError::Capacity(e) => (close_code::SIZE, e.to_string()),
+        WsError::Utf8(_) => (close_code::INVALID, "text message is not UTF-8".to_owned()),
+        // The peer is gone already: nobody to tell.
+        WsError::Protocol(ProtocolError::ResetWithoutClosingHandshake) => return None,
+        WsError::Protocol(e) => (close_code::PROTOCOL, e.to_string()),
+        _ => return None,
+    };
+    Some(CloseFrame {
+        code,
+        reason: Utf8Bytes::from(reason),
+    })
+}
+
 /// What the reader shares with the writer of one connection.
 struct ViewerLink {
     /// The viewer's own JPEG quality (the adaptation never goes above it).
@@ -117,6 +209,9 @@ struct ViewerLink {
     window: Option<u32>,
     /// Ends the reader when the writer gives up on the viewer (or the server shuts down).
     connection: CancellationToken,
+    /// Set by the reader when the transport failed in a way the client should hear about
+    /// (e.g. 1009 for a message over the transport limit); the writer closes with it.
+    close: std::sync::Mutex<Option<CloseFrame>>,
 }
 
 /// Serves one WebSocket connection until it closes or the server shuts down.
@@ -127,7 +222,19 @@ pub async fn handle_socket(socket: WebSocket, state: Arc<AppState>) {
         _ = state.shutdown.cancelled() => None,
     };
     let Some(hello) = hello else { return };
-    let viewer = match open_or_join(&state, hello).await {
+    // A dataset fetched from a PACS reports its progress before the welcome.
+    let (progress, mut progress_rx) = mpsc::channel(8);
+    let opening = open_or_join(&state, hello, progress);
+    tokio::pin!(opening);
+    let opened = loop {
+        tokio::select! {
+            opened = &mut opening => break opened,
+            Some(message) = progress_rx.recv() => {
+                let _ = send(&mut sink, text(&message)).await;
+            }
+        }
+    };
+    let viewer = match opened {
         Ok(viewer) => viewer,
         Err(reply) => {
             state.metrics.error_sent(reply.code);
@@ -155,6 +262,7 @@ pub async fn handle_socket(socket: WebSocket, state: Arc<AppState>) {
         acked: watch::Sender::new(0),
         window,
         connection: state.shutdown.child_token(),
+        close: std::sync::Mutex::new(None),
     });
     let (outbox, outbox_rx) = mpsc::channel(OUTBOX);
     let _ = outbox.send(welcome).await;
@@ -236,7 +344,16 @@ async fn wait_for_hello(
     loop {
         let message = match tokio::time::timeout_at(deadline, stream.next()).await {
             Ok(Some(Ok(message))) => message,
-            Ok(_) => return None,
+            Ok(Some(Err(e))) => {
+                if let Some(frame) = transport_close(&e) {
+                    tracing::debug!(error = %e, code = frame.code, "closing a connection before hello");
+                    if sink.send(Message::Close(Some(frame))).await.is_ok() {
+                        tokio::time::sleep(CLOSE_LINGER).await;
+                    }
+                }
+                return None;
+            }
+            Ok(None) => return None,
             Err(_) => {
                 let reply = Reply::new(ErrorCode::NotReady, "no hello within 30 s; closing");
                 metrics.error_sent(reply.code);
@@ -270,9 +387,13 @@ struct Viewer {
     window: Option<u32>,
 }
 
+/// Where a dataset's load progress goes: `done` and `total` parts (a PACS series' instances).
+type Progress = Box<dyn Fn(u32, u32) + Send + Sync>;
+
 async fn load_dataset(
     state: &Arc<AppState>,
     name: &str,
+    progress: Progress,
 ) -> Result<Arc<voxlight_volumes::Volume>, Reply> {
     if !state.catalog.contains(name) {
         return Err(Reply::new(
@@ -282,10 +403,38 @@ async fn load_dataset(
     }
     let catalog = state.catalog.clone();
     let owned = name.to_owned();
-    tokio::task::spawn_blocking(move || catalog.load(&owned))
+    tokio::task::spawn_blocking(move || catalog.load_with_progress(&owned, &progress))
         .await
         .map_err(|e| Reply::new(ErrorCode::Internal, format!("loader task failed: {e}")))?
-        .map_err(|e| Reply::new(ErrorCode::LoadFailed, e.to_string()))
+        .map_err(|e| {
+            tracing::warn!(dataset = name, error = %e, "dataset could not be loaded");
+            Reply::new(ErrorCode::LoadFailed, without_server_folders(&e))
+        })
+}
+
+/// A load error as a viewer may read it: the server's folders left out, file names kept
+/// (clients never see server paths).
+fn without_server_folders(error: &crate::datasets::DatasetError) -> String {
+    use voxlight_volumes::VolumeError;
+    let text = error.to_string();
+    let crate::datasets::DatasetError::Load { source, .. } = error else {
+        return text;
+    };
+    let path = match source {
+        VolumeError::Io { path, .. }
+        | VolumeError::Format { path, .. }
+        | VolumeError::Unsupported { path, .. }
+        | VolumeError::TooLarge { path, .. }
+        | VolumeError::UnknownFormat { path } => path,
+        _ => return text,
+    };
+    match path.parent() {
+        Some(dir) if !dir.as_os_str().is_empty() => text.replace(
+            &format!("{}{}", dir.display(), std::path::MAIN_SEPARATOR),
+            "",
+        ),
+        _ => text,
+    }
 }
 
 /// A viewport the protocol allows and this GPU can hold.
@@ -346,9 +495,34 @@ fn welcome(
     })
 }
 
-async fn open_or_join(state: &Arc<AppState>, hello: ClientMessage) -> Result<Viewer, Reply> {
+/// Progress messages for a viewer that has no session yet (the newest may replace older ones).
+fn progress_to(viewer: mpsc::Sender<ServerMessage>, dataset: &str) -> Progress {
+    let dataset = dataset.to_owned();
+    Box::new(move |done, total| {
+        let _ = viewer.try_send(ServerMessage::Loading {
+            dataset: dataset.clone(),
+            done,
+            total,
+        });
+    })
+}
+
+async fn open_or_join(
+    state: &Arc<AppState>,
+    hello: ClientMessage,
+    progress: mpsc::Sender<ServerMessage>,
+) -> Result<Viewer, Reply> {
+    // The version first: another version's fields may mean something else.
+    if let ClientMessage::Hello { protocol, .. } = &hello
+        && *protocol != PROTOCOL_VERSION
+    {
+        return Err(Reply::new(
+            ErrorCode::ProtocolVersion,
+            format!("this server speaks protocol {PROTOCOL_VERSION}, the client {protocol}"),
+        ));
+    }
+    validate_message(&hello)?;
     let ClientMessage::Hello {
-        protocol,
         session: join,
         viewport,
         dataset,
@@ -361,21 +535,8 @@ async fn open_or_join(state: &Arc<AppState>, hello: ClientMessage) -> Result<Vie
     else {
         return Err(Reply::new(ErrorCode::NotReady, "expected hello"));
     };
-    if protocol != PROTOCOL_VERSION {
-        return Err(Reply::new(
-            ErrorCode::ProtocolVersion,
-            format!("this server speaks protocol {PROTOCOL_VERSION}, the client {protocol}"),
-        ));
-    }
-    let window = match max_in_flight {
-        None => None,
-        Some(n) if (1..=MAX_FRAMES_IN_FLIGHT).contains(&n) => Some(n),
-        Some(n) => {
-            return Err(Reply::bad(format!(
-                "max_in_flight must be in 1..={MAX_FRAMES_IN_FLIGHT}, got {n}"
-            )));
-        }
-    };
+    // `validate_message` checked its range.
+    let window = max_in_flight;
     if let Some(id) = join {
         let (session, info, _) = state.hub.join(&id, name.as_deref())?;
         state.metrics.joins_total.fetch_add(1, Ordering::Relaxed);
@@ -405,7 +566,7 @@ async fn open_or_join(state: &Arc<AppState>, hello: ClientMessage) -> Result<Vie
     let technique_options = technique_options.unwrap_or_default();
     voxlight_engine::technique_options::validate(&technique_options).map_err(Reply::bad)?;
     let dataset = dataset.unwrap_or_else(|| state.default_dataset.clone());
-    let volume = load_dataset(state, &dataset).await?;
+    let volume = load_dataset(state, &dataset, progress_to(progress, &dataset)).await?;
     let scene = Scene {
         tf: crate::datasets::default_tf(&volume),
         lights: crate::datasets::default_lights_for(&volume),
@@ -533,6 +694,11 @@ async fn read_loop(
             Some(Ok(message)) => message,
             Some(Err(e)) => {
                 tracing::debug!(session = session.render_id, viewer = viewer.id, error = %e, "websocket read failed");
+                if let Some(frame) = transport_close(&e)
+                    && let Ok(mut close) = link.close.lock()
+                {
+                    *close = Some(frame);
+                }
                 return;
             }
         };
@@ -577,6 +743,7 @@ async fn handle_message(
     link: &ViewerLink,
 ) -> Result<(), Reply> {
     let arrived = Instant::now();
+    validate_message(&message)?;
     match message {
         ClientMessage::Hello { .. } => {
             return Err(Reply::new(
@@ -609,18 +776,15 @@ async fn handle_message(
     let mut scene = core.scene.clone();
     let (change, edit) = match message {
         ClientMessage::Camera(camera) => {
-            CameraBasis::new(&camera).map_err(Reply::bad)?;
             scene.camera = camera;
             (Change::Camera, ClientMessage::Camera(camera))
         }
         ClientMessage::Tf(tf) => {
-            voxlight_engine::tf::validate(&tf).map_err(Reply::bad)?;
             let change = Change::tf(&scene.tf, &tf);
             scene.tf = tf.clone();
             (change, ClientMessage::Tf(tf))
         }
         ClientMessage::Lights { lights } => {
-            validate_lights(&lights).map_err(Reply::bad)?;
             scene.lights = lights.clone();
             (Change::Lights, ClientMessage::Lights { lights })
         }
@@ -654,29 +818,17 @@ async fn handle_message(
             iterations,
         } => {
             if let Some(q) = quality {
-                if !(1..=100).contains(&q) {
-                    return Err(Reply::bad(format!(
-                        "jpeg_quality must be in 1..=100, got {q}"
-                    )));
-                }
                 link.jpeg_quality.store(q, Ordering::Relaxed);
             }
-            match iterations {
-                None => return Ok(()),
-                Some(n) if (1..=65536).contains(&n) => {
-                    scene.target_iterations = n;
-                    let edit = ClientMessage::Quality {
-                        jpeg_quality: None,
-                        iterations: Some(n),
-                    };
-                    (Change::Iterations, edit)
-                }
-                Some(n) => {
-                    return Err(Reply::bad(format!(
-                        "iterations must be in 1..=65536, got {n}"
-                    )));
-                }
-            }
+            let Some(n) = iterations else {
+                return Ok(());
+            };
+            scene.target_iterations = n;
+            let edit = ClientMessage::Quality {
+                jpeg_quality: None,
+                iterations: Some(n),
+            };
+            (Change::Iterations, edit)
         }
         ClientMessage::Technique { name, options } => {
             check_technique(state, &name)?;
@@ -704,7 +856,16 @@ async fn handle_message(
             return Ok(());
         }
         ClientMessage::Dataset { name } => {
-            let volume = load_dataset(state, &name).await?;
+            let events = session.events.clone();
+            let loading = name.clone();
+            let progress: Progress = Box::new(move |done, total| {
+                let _ = events.send(Arc::new(ServerMessage::Loading {
+                    dataset: loading.clone(),
+                    done,
+                    total,
+                }));
+            });
+            let volume = load_dataset(state, &name, progress).await?;
             // A new dataset is a new scene: its own default TF and lights.
             scene.tf = crate::datasets::default_tf(&volume);
             scene.lights = crate::datasets::default_lights_for(&volume);
@@ -873,7 +1034,20 @@ async fn write_loop(
                     text(&message)
                 }
                 None => {
-                    let _ = sink.close().await;
+                    let frame = link.close.lock().ok().and_then(|mut close| close.take());
+                    match frame {
+                        Some(frame) => {
+                            if send(&mut sink, Message::Close(Some(frame))).await {
+                                tokio::select! {
+                                    _ = tokio::time::sleep(CLOSE_LINGER) => {}
+                                    _ = shutdown.cancelled() => {}
+                                }
+                            }
+                        }
+                        None => {
+                            let _ = sink.close().await;
+                        }
+                    }
                     break;
                 }
             },
