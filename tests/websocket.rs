@@ -551,3 +551,495 @@ async fn metrics_count_sessions_frames_errors_and_latency() {
     );
     server.stop().await.unwrap();
 }
+
+/// Sends one message and expects an `error` with `code`; returns its text.
+async fn refused(client: &mut Client, message: String, code: ErrorCode) -> String {
+    client.send_text(message.clone()).await.unwrap();
+    match client.recv_text().await.unwrap() {
+        ServerMessage::Error {
+            code: got,
+            message: text,
+        } => {
+            assert_eq!(
+                got, code,
+                "{message:.200} was answered with {got:?}: {text}"
+            );
+            assert!(!text.is_empty());
+            text
+        }
+        other => panic!("{message:.200} was answered with {other:?}, expected a {code:?} error"),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_hostile_message_gets_an_error_and_the_session_goes_on() {
+    let server = TestServer::start(None).await.unwrap();
+    let mut client = Client::connect(&server.ws_url()).await.unwrap();
+    client.hello(None, 32, 32).await.unwrap();
+    client.frame_where(|_| true).await.unwrap();
+    let camera = |eye: &str, fov: &str| {
+        format!(r#"{{"type":"camera","eye":{eye},"target":[0,0,0],"up":[0,0,1],"fov_deg":{fov}}}"#)
+    };
+    let nested = |depth: usize| "[".repeat(depth) + &"]".repeat(depth);
+    let bad_message = [
+        // Not JSON, not an object, no or an unknown type.
+        "".to_owned(),
+        "null".into(),
+        "42".into(),
+        r#""hello""#.into(),
+        "[]".into(),
+        "{}".into(),
+        r#"{"type":5}"#.into(),
+        r#"{"type":"warp_drive"}"#.into(),
+        r#"{"type":"TF","points":[]}"#.into(),
+        "\u{feff}{\"type\":\"ack\",\"seq\":1}".into(),
+        r#"{"type":"ack","seq":1}{"type":"ack","seq":2}"#.into(),
+        // Numbers JSON does not have, or that fit no field.
+        r#"{"type":"params","exposure":NaN}"#.into(),
+        r#"{"type":"params","exposure":Infinity}"#.into(),
+        r#"{"type":"params","exposure":-Infinity}"#.into(),
+        r#"{"type":"params","exposure":"Infinity"}"#.into(),
+        r#"{"type":"params","exposure":1e400}"#.into(),
+        camera("[0,-2,1e999]", "30"),
+        // Wrong JSON types and missing fields.
+        camera(r#""here""#, "30"),
+        camera("[0,-2]", "30"),
+        camera("[0,-2,0,5]", "30"),
+        camera("[0,-2,null]", "30"),
+        r#"{"type":"camera","eye":[0,-2,0]}"#.into(),
+        r#"{"type":"viewport","width":"64","height":64}"#.into(),
+        r#"{"type":"viewport","width":64.5,"height":64}"#.into(),
+        r#"{"type":"viewport","width":-64,"height":64}"#.into(),
+        r#"{"type":"viewport","width":4294967296,"height":64}"#.into(),
+        r#"{"type":"tf","points":{}}"#.into(),
+        r#"{"type":"tf","points":[{"value":0.5}]}"#.into(),
+        r#"{"type":"tf"}"#.into(),
+        r#"{"type":"lights","lights":[{"kind":"laser","power":1}]}"#.into(),
+        r#"{"type":"ack","seq":-1}"#.into(),
+        r#"{"type":"ack","seq":18446744073709551616}"#.into(),
+        r#"{"type":"name","name":7}"#.into(),
+        r#"{"type":"dataset","name":null}"#.into(),
+        r#"{"type":"technique","name":"raymarch","options":{"photon":{"lock":"x"}}}"#.into(),
+        r#"{"type":"technique","name":"raymarch","options":{"photon":{"passes":"many"}}}"#.into(),
+        // quality: values that are no u8 / u32.
+        r#"{"type":"quality","jpeg_quality":300}"#.into(),
+        r#"{"type":"quality","jpeg_quality":256}"#.into(),
+        r#"{"type":"quality","jpeg_quality":-1}"#.into(),
+        r#"{"type":"quality","jpeg_quality":50.5}"#.into(),
+        r#"{"type":"quality","jpeg_quality":"high"}"#.into(),
+        r#"{"type":"quality","iterations":-1}"#.into(),
+        r#"{"type":"quality","iterations":4294967296}"#.into(),
+        r#"{"type":"quality","iterations":1e20}"#.into(),
+        // Deep nesting, in a field and at the top (serde_json stops at 128 levels).
+        format!(r#"{{"type":"tf","points":{}}}"#, nested(20_000)),
+        nested(30_000),
+        format!(r#"{{"type":"name","name":"x","extra":{}}}"#, nested(200)),
+        "{\"a\":".repeat(10_000),
+    ];
+    for message in bad_message {
+        assert!(message.len() <= voxlight_protocol::MAX_MESSAGE_BYTES);
+        refused(&mut client, message, ErrorCode::BadMessage).await;
+    }
+    let too_many_points: Vec<_> = (0..=voxlight_protocol::MAX_TF_POINTS)
+        .map(|i| json!({"value": i as f32 / 300.0, "color": [1, 1, 1], "opacity": 0.5}))
+        .collect();
+    let too_many_lights: Vec<_> = (0..=voxlight_protocol::MAX_LIGHTS)
+        .map(|_| json!({"kind": "environment", "radiance": [0.1, 0.1, 0.1]}))
+        .collect();
+    let bad_value = [
+        // Out of range quality.
+        json!({"type": "quality", "jpeg_quality": 0}),
+        json!({"type": "quality", "jpeg_quality": 101}),
+        json!({"type": "quality", "iterations": 0}),
+        json!({"type": "quality", "iterations": 65537}),
+        json!({"type": "quality", "iterations": u32::MAX}),
+        // A valid quality beside a bad one: refused as a whole.
+        json!({"type": "quality", "jpeg_quality": 50, "iterations": 0}),
+        // Finite JSON numbers beyond f32 (they become ±inf) and other non-finite results.
+        json!({"type": "params", "exposure": 1e39}),
+        json!({"type": "params", "density_scale": -1e39}),
+        json!({"type": "params", "g": 1e39}),
+        json!({"type": "params", "g": 0.99}),
+        json!({"type": "params", "exposure": 0}),
+        json!({"type": "params", "density_scale": -1}),
+        json!({"type": "camera", "eye": [1e39, 0, 0], "target": [0, 0, 0], "up": [0, 0, 1], "fov_deg": 30}),
+        json!({"type": "camera", "eye": [3e38, 0, 0], "target": [-3e38, 0, 0], "up": [0, 0, 1], "fov_deg": 30}),
+        json!({"type": "camera", "eye": [0, -2, 0], "target": [0, -2, 0], "up": [0, 0, 1], "fov_deg": 30}),
+        json!({"type": "camera", "eye": [0, -2, 0], "target": [0, 0, 0], "up": [0, 1, 0], "fov_deg": 30}),
+        json!({"type": "camera", "eye": [0, -2, 0], "target": [0, 0, 0], "up": [0, 0, 1], "fov_deg": 0}),
+        json!({"type": "camera", "eye": [0, -2, 0], "target": [0, 0, 0], "up": [0, 0, 1], "fov_deg": 1e39}),
+        json!({"type": "camera", "eye": [1e-30, 0, 0], "target": [0, 0, 0], "up": [0, 0, 1], "fov_deg": 30}),
+        json!({"type": "tf", "points": [{"value": 0.5, "color": [1, 1, 1], "opacity": 1e39}]}),
+        json!({"type": "tf", "points": [{"value": -1e39, "color": [1, 1, 1], "opacity": 0.5}]}),
+        json!({"type": "tf", "points": [{"value": 0.5, "color": [1, -0.1, 1], "opacity": 0.5}]}),
+        json!({"type": "tf", "points": too_many_points}),
+        json!({"type": "lights", "lights": too_many_lights}),
+        json!({"type": "lights", "lights": [{"kind": "directional", "direction": [0, 0, 0], "irradiance": [1, 1, 1]}]}),
+        json!({"type": "lights", "lights": [{"kind": "directional", "direction": [1e39, 0, 0], "irradiance": [1, 1, 1]}]}),
+        json!({"type": "lights", "lights": [{"kind": "point", "position": [0, 0, 2], "intensity": [1e39, 1, 1]}]}),
+        json!({"type": "lights", "lights": [{"kind": "environment", "radiance": [-1, 0, 0]}]}),
+        // Viewports the protocol does not allow.
+        json!({"type": "viewport", "width": 0, "height": 0}),
+        json!({"type": "viewport", "width": 4097, "height": 32}),
+        json!({"type": "viewport", "width": u32::MAX, "height": u32::MAX}),
+        // Technique options out of range.
+        json!({"type": "technique", "name": "raymarch", "options": {"photon": {"passes": 0}}}),
+        json!({"type": "technique", "name": "raymarch", "options": {"manylight": {"virtual_lights": 1_000_000}}}),
+        json!({"type": "technique", "name": "raymarch", "options": {"irradiance": {"gamma": 1e39}}}),
+    ];
+    for message in bad_value {
+        refused(&mut client, message.to_string(), ErrorCode::BadValue).await;
+    }
+    // A message between the protocol limit and the transport limit: too_large, and nothing
+    // else happens.
+    for len in [
+        voxlight_protocol::MAX_MESSAGE_BYTES + 1,
+        super_large_but_accepted_by_the_transport(),
+    ] {
+        let padded = format!(r#"{{"type":"name","name":"{}"}}"#, "x".repeat(len));
+        refused(&mut client, padded, ErrorCode::TooLarge).await;
+    }
+    // A hello on a live connection.
+    refused(
+        &mut client,
+        json!({"type": "hello", "protocol": 1, "viewport": {"width": 0, "height": 0}}).to_string(),
+        ErrorCode::NotReady,
+    )
+    .await;
+
+    // None of it changed the session: the next edit is version 1, and it renders.
+    client
+        .send_json(json!({"type": "camera", "eye": [2.4, 0.0, 0.2], "target": [0, 0, 0], "up": [0, 0, 1], "fov_deg": 30}))
+        .await
+        .unwrap();
+    let edited = client
+        .text_where(|m| matches!(m, ServerMessage::Edited { .. }))
+        .await
+        .unwrap();
+    assert!(
+        matches!(edited, ServerMessage::Edited { version: 1, .. }),
+        "a refused message changed the scene version: {edited:?}"
+    );
+    let frame = client
+        .frame_where(|f| f.meta.scene_version >= 1)
+        .await
+        .unwrap();
+    assert_eq!((frame.width, frame.height), (32, 32));
+    server.stop().await.unwrap();
+}
+
+/// Just under the transport limit (1 MiB), minus room for the JSON around it.
+fn super_large_but_accepted_by_the_transport() -> usize {
+    (1 << 20) - 64
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_empty_tf_is_a_transparent_volume_not_an_error() {
+    // docs/protocol.md: "No points means fully transparent" (the web editor can delete every
+    // point). It is accepted, echoed, and renders the environment alone.
+    let server = TestServer::start(None).await.unwrap();
+    let mut client = Client::connect(&server.ws_url()).await.unwrap();
+    let welcome = client.hello(None, 32, 32).await.unwrap();
+    let ServerMessage::Welcome { techniques, .. } = welcome else {
+        unreachable!()
+    };
+    client
+        .send_json(json!({"type": "lights", "lights": [{"kind": "environment", "radiance": [0.25, 0.5, 0.75]}]}))
+        .await
+        .unwrap();
+    client
+        .send_json(json!({"type": "tf", "points": []}))
+        .await
+        .unwrap();
+    let echoed = client
+        .text_where(|m| {
+            matches!(m, ServerMessage::Edited { edit, .. }
+                if matches!(**edit, voxlight_protocol::ClientMessage::Tf(ref tf) if tf.points.is_empty()))
+        })
+        .await
+        .unwrap();
+    let ServerMessage::Edited { version, .. } = echoed else {
+        unreachable!()
+    };
+    let frame = client
+        .frame_where(|f| f.meta.scene_version >= version)
+        .await
+        .unwrap();
+    assert_eq!(
+        frame.distinct_colors(),
+        1,
+        "an empty TF shows the environment only"
+    );
+    // Every technique takes it (nothing to scatter from, no lights inside): converged
+    // pictures of the environment, no error.
+    client
+        .send_json(json!({"type": "quality", "iterations": 2}))
+        .await
+        .unwrap();
+    // The quality edit is `version + 1`; each technique switch one more.
+    let others = techniques.iter().filter(|t| t.name != "raymarch");
+    for (version, technique) in (version + 2..).zip(others) {
+        client
+            .send_json(json!({"type": "technique", "name": technique.name}))
+            .await
+            .unwrap();
+        let still = client
+            .frame_where(|f| f.meta.scene_version >= version && f.meta.converged)
+            .await
+            .unwrap_or_else(|e| panic!("{}: {e}", technique.name));
+        assert_eq!(still.meta.technique, technique.name);
+        assert_eq!(still.distinct_colors(), 1, "{}", technique.name);
+    }
+    server.stop().await.unwrap();
+}
+
+type RawSocket =
+    tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
+
+/// Reads until the server closes; the close frame's code and reason (None: the connection
+/// ended without one).
+async fn close_frame(ws: &mut RawSocket) -> Option<(u16, String)> {
+    use futures_util::StreamExt;
+    use tokio_tungstenite::tungstenite::Message;
+    loop {
+        let next = tokio::time::timeout(std::time::Duration::from_secs(30), ws.next())
+            .await
+            .expect("the server neither closed nor answered within 30 s");
+        match next {
+            Some(Ok(Message::Close(frame))) => {
+                return frame.map(|f| (u16::from(f.code), f.reason.to_string()));
+            }
+            Some(Ok(_)) => continue,
+            Some(Err(_)) | None => return None,
+        }
+    }
+}
+
+async fn raw_connect(server: &TestServer) -> RawSocket {
+    tokio_tungstenite::connect_async(server.ws_url())
+        .await
+        .unwrap()
+        .0
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_message_over_the_transport_limit_closes_with_1009() {
+    use futures_util::SinkExt;
+    use tokio_tungstenite::tungstenite::Message;
+    use tokio_tungstenite::tungstenite::protocol::frame::Frame;
+    use tokio_tungstenite::tungstenite::protocol::frame::coding::{Data, OpCode};
+    let server = TestServer::start(None).await.unwrap();
+    let over = (1 << 20) + 1;
+    let hello = json!({"type": "hello", "protocol": 1, "viewport": {"width": 32, "height": 32}});
+
+    // Before hello, and after it (text and binary): the client hears 1009, not silence.
+    for (after_hello, message) in [
+        (false, Message::Text("x".repeat(over).into())),
+        (true, Message::Text("x".repeat(over).into())),
+        (true, Message::Binary(vec![7u8; 4 << 20].into())),
+    ] {
+        let mut ws = raw_connect(&server).await;
+        if after_hello {
+            ws.send(Message::Text(hello.to_string().into()))
+                .await
+                .unwrap();
+        }
+        // The server may close before it has read everything: a failed send is fine.
+        let _ = ws.send(message).await;
+        let (code, reason) = close_frame(&mut ws)
+            .await
+            .expect("the server must close with a close frame, not drop the connection");
+        assert_eq!(code, 1009, "close reason: {reason}");
+        assert!(reason.contains("limit"), "{reason}");
+    }
+
+    // Text that is not UTF-8: 1007.
+    let mut ws = raw_connect(&server).await;
+    ws.send(Message::Text(hello.to_string().into()))
+        .await
+        .unwrap();
+    let frame = Frame::message(vec![b'{', 0xff, 0xfe, b'}'], OpCode::Data(Data::Text), true);
+    let _ = ws.send(Message::Frame(frame)).await;
+    let (code, _) = close_frame(&mut ws).await.expect("a close frame");
+    assert_eq!(code, 1007);
+
+    // A frame with reserved bits set (no extension was negotiated): 1002.
+    let mut ws = raw_connect(&server).await;
+    ws.send(Message::Text(hello.to_string().into()))
+        .await
+        .unwrap();
+    let mut frame = Frame::message(b"{}".to_vec(), OpCode::Data(Data::Text), true);
+    frame.header_mut().rsv1 = true;
+    let _ = ws.send(Message::Frame(frame)).await;
+    let (code, _) = close_frame(&mut ws).await.expect("a close frame");
+    assert_eq!(code, 1002);
+
+    // The server is unharmed: the sessions it had are gone with their viewers, a new one works.
+    let mut client = Client::connect(&server.ws_url()).await.unwrap();
+    client.hello(None, 32, 32).await.unwrap();
+    client.frame_where(|_| true).await.unwrap();
+    server.stop().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn hellos_with_absurd_values_are_refused() {
+    let server = TestServer::start(None).await.unwrap();
+    let cases = [
+        (
+            json!({"type": "hello", "protocol": 1, "viewport": {"width": 0, "height": 0}}),
+            ErrorCode::BadValue,
+        ),
+        (
+            json!({"type": "hello", "protocol": 1, "viewport": {"width": 100_000, "height": 100_000}}),
+            ErrorCode::BadValue,
+        ),
+        (
+            json!({"type": "hello", "protocol": 1, "viewport": {"width": u32::MAX, "height": 1}}),
+            ErrorCode::BadValue,
+        ),
+        (
+            json!({"type": "hello", "protocol": 1, "max_in_flight": 0}),
+            ErrorCode::BadValue,
+        ),
+        (
+            json!({"type": "hello", "protocol": 1, "max_in_flight": 9}),
+            ErrorCode::BadValue,
+        ),
+        (
+            json!({"type": "hello", "protocol": 1, "technique_options": {"photon": {"bounces": 0}}}),
+            ErrorCode::BadValue,
+        ),
+        (
+            json!({"type": "hello", "protocol": 1, "technique": "x".repeat(10_000)}),
+            ErrorCode::UnknownTechnique,
+        ),
+        (
+            json!({"type": "hello", "protocol": 1, "session": "0".repeat(60_000)}),
+            ErrorCode::UnknownSession,
+        ),
+        (
+            json!({"type": "hello", "protocol": 1, "dataset": "\u{0}/../../etc/passwd"}),
+            ErrorCode::UnknownDataset,
+        ),
+        (
+            json!({"type": "hello", "protocol": u32::MAX}),
+            ErrorCode::ProtocolVersion,
+        ),
+    ];
+    for (hello, code) in cases {
+        let mut client = Client::connect(&server.ws_url()).await.unwrap();
+        let reply = client.hello_with(hello.clone()).await.unwrap();
+        match reply {
+            ServerMessage::Error { code: got, .. } => assert_eq!(got, code, "{hello:.200}"),
+            other => panic!("{hello:.200} was answered with {other:?}"),
+        }
+    }
+    // Values that do not parse leave the connection waiting for a proper hello.
+    let mut client = Client::connect(&server.ws_url()).await.unwrap();
+    for hello in [
+        r#"{"type":"hello","protocol":1,"viewport":{"width":4294967296,"height":1}}"#,
+        r#"{"type":"hello","protocol":-1}"#,
+        r#"{"type":"hello","protocol":1,"viewport":{"width":1e400,"height":1}}"#,
+        r#"{"type":"hello"}"#,
+    ] {
+        refused(&mut client, hello.to_owned(), ErrorCode::BadMessage).await;
+    }
+    // A display name of any length and content is cut to 64 characters.
+    let long_name = "\u{202e}\u{0}é".repeat(2_000);
+    let welcome = client
+        .hello_with(json!({"type": "hello", "protocol": 1, "name": long_name, "viewport": {"width": 32, "height": 32}}))
+        .await
+        .unwrap();
+    let ServerMessage::Welcome { viewer, .. } = welcome else {
+        panic!("expected welcome, got {welcome:?}")
+    };
+    assert!(viewer.name.chars().count() <= voxlight_protocol::MAX_NAME_CHARS);
+    client.frame_where(|_| true).await.unwrap();
+    server.stop().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_corrupt_dataset_fails_to_load_and_the_viewer_picks_another() {
+    let dir = tempfile::tempdir().unwrap();
+    let write = |name: &str, bytes: &[u8]| std::fs::write(dir.path().join(name), bytes).unwrap();
+    // Truncated data, a header that lies about its size, garbage under a volume name, a VTK
+    // file cut in its header, and one good volume.
+    write(
+        "truncated.nrrd",
+        b"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 64 64 64\nencoding: raw\n\n0123456789",
+    );
+    write(
+        "huge.nrrd",
+        b"NRRD0004\ntype: double\ndimension: 3\nsizes: 4000000000 4000000000 4000000000\nencoding: gzip\n\n",
+    );
+    write("garbage.nii", &[0x5a; 400]);
+    write(
+        "cut.vti",
+        b"<?xml version=\"1.0\"?>\n<VTKFile type=\"ImageData\" version=\"1.0\"><ImageData WholeExtent=\"0 7 0",
+    );
+    let mut good = b"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 8 8 8\nencoding: raw\n\n".to_vec();
+    good.extend((0..512u32).map(|i| ((i * 37) % 251) as u8));
+    write("good.nrrd", &good);
+    let server = TestServer::start(Some(dir.path().to_owned()))
+        .await
+        .unwrap();
+    let folder = dir.path().display().to_string();
+
+    // A hello naming a corrupt dataset is refused (and the socket closed, as documented);
+    // the next connection opens a good one.
+    let mut client = Client::connect(&server.ws_url()).await.unwrap();
+    let reply = client
+        .hello_with(json!({"type": "hello", "protocol": 1, "dataset": "truncated.nrrd"}))
+        .await
+        .unwrap();
+    assert!(
+        matches!(&reply, ServerMessage::Error { code: ErrorCode::LoadFailed, message } if message.contains("truncated")),
+        "{reply:?}"
+    );
+
+    let mut client = Client::connect(&server.ws_url()).await.unwrap();
+    client.hello(Some("phantom:sphere"), 32, 32).await.unwrap();
+    client.frame_where(|_| true).await.unwrap();
+    for name in ["truncated.nrrd", "huge.nrrd", "garbage.nii", "cut.vti"] {
+        let text = refused(
+            &mut client,
+            json!({"type": "dataset", "name": name}).to_string(),
+            ErrorCode::LoadFailed,
+        )
+        .await;
+        assert!(text.contains(name), "{text}");
+        assert!(
+            !text.contains(&folder),
+            "server folders must not reach clients: {text}"
+        );
+    }
+    // Still the sphere, still rendering: an edit gives a frame.
+    client
+        .send_json(json!({"type": "camera", "eye": [2.4, 0.0, 0.2], "target": [0, 0, 0], "up": [0, 0, 1], "fov_deg": 30}))
+        .await
+        .unwrap();
+    client
+        .frame_where(|f| f.meta.scene_version >= 1)
+        .await
+        .unwrap();
+    // Another dataset loads.
+    client
+        .send_json(json!({"type": "dataset", "name": "good.nrrd"}))
+        .await
+        .unwrap();
+    let loaded = client
+        .text_where(|m| matches!(m, ServerMessage::DatasetLoaded { .. }))
+        .await
+        .unwrap();
+    let ServerMessage::DatasetLoaded { dataset, state, .. } = loaded else {
+        unreachable!()
+    };
+    assert_eq!(dataset.name, "good.nrrd");
+    assert_eq!(dataset.details.unwrap().dims, [8, 8, 8]);
+    assert_eq!(state.dataset, "good.nrrd");
+    client
+        .frame_where(|f| f.meta.scene_version >= 2)
+        .await
+        .unwrap();
+    server.stop().await.unwrap();
+}

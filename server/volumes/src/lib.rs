@@ -25,7 +25,7 @@ use std::path::Path;
 pub use catalog::{DatasetEntry, MAX_SCAN_DEPTH, scan_catalog};
 pub use error::VolumeError;
 pub use phantom::{CORNELL_MATERIALS, MAX_PHANTOM_SIZE, phantom, phantom_names};
-pub use raw::{Endian, RawVolume, SampleType, Samples, load_raw_file};
+pub use raw::{Endian, MAX_SPACING_RATIO, RawVolume, SampleType, Samples, load_raw_file};
 pub use volume::{HISTOGRAM_BINS, Volume, compute_histogram, histogram_bin};
 
 /// Largest number of voxels any loader accepts (2³¹, e.g. 2048 × 1024 × 1024). Checked
@@ -80,6 +80,13 @@ fn detect(path: &Path) -> Result<Kind, VolumeError> {
         std::fs::metadata(path).map_err(|e| VolumeError::io(path, "opening the volume", e))?;
     if meta.is_dir() {
         return Ok(Kind::DicomDir);
+    }
+    if !meta.is_file() {
+        // A device or pipe (e.g. a link to /dev/zero) never ends: reading it would not either.
+        return Err(VolumeError::unsupported(
+            path,
+            "not a regular file or folder (a device or pipe cannot be a volume)",
+        ));
     }
     if let Some(k) = catalog::kind_by_name(path) {
         return Ok(match k {

@@ -6,7 +6,9 @@ use std::path::{Path, PathBuf};
 
 use flate2::bufread::MultiGzDecoder;
 
-use crate::raw::{RawVolume, SampleType, Samples, byte_count, check_dims, read_samples};
+use crate::raw::{
+    RawVolume, SampleType, Samples, byte_count, check_dims, check_spacing, read_samples,
+};
 use crate::{Endian, VolumeError};
 
 const HEADER_SIZE: usize = 348;
@@ -231,6 +233,16 @@ pub fn load_nifti(path: &Path) -> Result<RawVolume, VolumeError> {
             spacing[k] = p;
         }
     }
+
+    // Axes the image does not have are as thick as its finest voxel edge.
+    let finest = spacing[..(ndim as usize).min(3)]
+        .iter()
+        .copied()
+        .fold(f32::INFINITY, f32::min);
+    for s in spacing.iter_mut().skip(ndim as usize) {
+        *s = finest;
+    }
+    let spacing = check_spacing(path, "NIfTI pixdim[1..3]", spacing.map(f64::from))?;
 
     let vox_offset = h.f32(108);
     let slope = h.f32(112);

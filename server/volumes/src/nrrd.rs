@@ -183,6 +183,14 @@ fn parse_vectors(path: &Path, s: &str) -> Result<Vec<Option<Vec<f64>>>, VolumeEr
     Ok(out)
 }
 
+/// A 2D image is one voxel thick: as thick as its finer in-plane spacing (so that the box
+/// of an image in metres is not a needle of unit height).
+fn flat_spacing(spacing: &mut [f64; 3], spatial_axes: usize) {
+    if spatial_axes == 2 {
+        spacing[2] = spacing[0].min(spacing[1]);
+    }
+}
+
 /// Loads a `.nrrd` or `.nhdr` file.
 pub fn load_nrrd(path: &Path) -> Result<RawVolume, VolumeError> {
     let mut file =
@@ -290,6 +298,7 @@ pub fn load_nrrd(path: &Path) -> Result<RawVolume, VolumeError> {
                 }
             }
         }
+        flat_spacing(&mut spacing, spatial_axes.len());
         spacing = check_spacing(path, "NRRD field \"space directions\"", spacing)?.map(f64::from);
     } else if let Some(s) = header.get("spacings") {
         let vals: Vec<&str> = s.split_whitespace().collect();
@@ -310,10 +319,8 @@ pub fn load_nrrd(path: &Path) -> Result<RawVolume, VolumeError> {
                 parse_num(path, "spacings", vals[ax])?
             };
         }
+        flat_spacing(&mut spacing, spatial_axes.len());
         spacing = check_spacing(path, "NRRD field \"spacings\"", spacing)?.map(f64::from);
-    }
-    if dims[2] == 1 && sizes.len() == 2 {
-        spacing[2] = 1.0;
     }
     let spacing = spacing.map(|s| s as f32);
 
@@ -359,10 +366,25 @@ pub fn load_nrrd(path: &Path) -> Result<RawVolume, VolumeError> {
             let f = File::open(&p).map_err(|e| {
                 VolumeError::io(
                     &p,
-                    format!("opening the data file named by {}", path.display()),
+                    format!(
+                        "opening the data file named by {}",
+                        path.file_name().unwrap_or_default().to_string_lossy()
+                    ),
                     e,
                 )
             })?;
+            // A device or pipe (`data file: /dev/zero`) has no end: ascii data and line skips
+            // would read it forever.
+            let is_file = f
+                .metadata()
+                .map_err(|e| VolumeError::io(&p, "reading the data file's type", e))?
+                .is_file();
+            if !is_file {
+                return Err(VolumeError::unsupported(
+                    &p,
+                    "the NRRD data file is not a regular file",
+                ));
+            }
             (p, f, 0)
         }
         None => {
@@ -511,43 +533,70 @@ pub fn load_nrrd(path: &Path) -> Result<RawVolume, VolumeError> {
     })
 }
 
-/// Parses whitespace/comma-separated numbers into samples.
+/// Longest value accepted in ascii data: a double needs at most ~25 characters.
+const MAX_ASCII_TOKEN: usize = 64;
+
+/// Parses whitespace/comma-separated numbers into samples, streaming: memory grows with the
+/// values actually read (never with what the header declares), and a value longer than
+/// [`MAX_ASCII_TOKEN`] is an error rather than an endless read. Anything after `count` values
+/// is ignored.
 fn read_ascii(
-    r: impl BufRead,
+    mut r: impl Read,
     ty: SampleType,
     count: usize,
     path: &Path,
 ) -> Result<Samples, VolumeError> {
-    let mut vals: Vec<f64> = Vec::new();
-    // ASCII is for small volumes; parse into f64 then convert (bounded by count).
-    vals.try_reserve(count.min(1 << 24))
-        .map_err(|_| VolumeError::format(path, format!("cannot allocate {count} ascii samples")))?;
-    let mut r = r;
-    let mut line = String::new();
-    let mut lineno = 0usize;
-    while vals.len() < count {
-        line.clear();
-        lineno += 1;
-        let n = r
-            .read_line(&mut line)
-            .map_err(|e| VolumeError::io(path, "reading ascii data", e))?;
-        if n == 0 {
-            break;
-        }
-        for tok in line
-            .split(|c: char| c.is_whitespace() || c == ',')
-            .filter(|t| !t.is_empty())
-        {
-            let v: f64 = tok.parse().map_err(|_| {
+    let mut vals: Vec<f64> = Vec::with_capacity(count.min(1 << 16));
+    let mut token: Vec<u8> = Vec::with_capacity(MAX_ASCII_TOKEN);
+    let mut lineno = 1usize;
+    let mut buf = vec![0u8; 1 << 16];
+    let push = |token: &[u8], lineno: usize, vals: &mut Vec<f64>| {
+        let v = std::str::from_utf8(token)
+            .ok()
+            .and_then(|t| t.parse::<f64>().ok())
+            .ok_or_else(|| {
+                let shown = String::from_utf8_lossy(token);
                 VolumeError::format(
                     path,
-                    format!("ascii data line {lineno}: {tok:?} is not a number"),
+                    format!("ascii data line {lineno}: {shown:?} is not a number"),
                 )
             })?;
-            if vals.len() < count {
-                vals.push(v);
+        vals.push(v);
+        Ok::<(), VolumeError>(())
+    };
+    'read: while vals.len() < count {
+        let n = match r.read(&mut buf) {
+            Ok(0) => break,
+            Ok(n) => n,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+            Err(e) => return Err(VolumeError::io(path, "reading ascii data", e)),
+        };
+        for &c in &buf[..n] {
+            if c.is_ascii_whitespace() || c == b',' {
+                if !token.is_empty() {
+                    push(&token, lineno, &mut vals)?;
+                    token.clear();
+                    if vals.len() == count {
+                        break 'read;
+                    }
+                }
+                if c == b'\n' {
+                    lineno += 1;
+                }
+            } else if token.len() == MAX_ASCII_TOKEN {
+                return Err(VolumeError::format(
+                    path,
+                    format!(
+                        "ascii data line {lineno}: a value longer than {MAX_ASCII_TOKEN} characters"
+                    ),
+                ));
+            } else {
+                token.push(c);
             }
         }
+    }
+    if vals.len() < count && !token.is_empty() {
+        push(&token, lineno, &mut vals)?;
     }
     if vals.len() < count {
         return Err(VolumeError::format(

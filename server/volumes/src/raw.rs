@@ -334,10 +334,16 @@ pub(crate) fn byte_count(dims: [u32; 3], ty: SampleType) -> u64 {
     dims.iter().map(|&d| d as u64).product::<u64>() * ty.size() as u64
 }
 
-/// Checks that spacings are finite and positive.
+/// Largest ratio between two voxel spacings of a volume. Beyond it the volume's box is a
+/// sheet whose thin side rounds to nothing in `f32` (a zero-width box, a zero march step)
+/// or nearly so; no real scan comes close (CT slices are at most ~50× their pixel size).
+pub const MAX_SPACING_RATIO: f64 = 1e6;
+
+/// Checks that spacings are finite, positive, normal `f32` numbers within
+/// [`MAX_SPACING_RATIO`] of each other.
 pub(crate) fn check_spacing(path: &Path, what: &str, s: [f64; 3]) -> Result<[f32; 3], VolumeError> {
     for (i, &v) in s.iter().enumerate() {
-        if !v.is_finite() || v <= 0.0 || (v as f32) <= 0.0 || !(v as f32).is_finite() {
+        if !v.is_finite() || v <= 0.0 || !(v as f32).is_normal() {
             return Err(VolumeError::format(
                 path,
                 format!(
@@ -347,10 +353,24 @@ pub(crate) fn check_spacing(path: &Path, what: &str, s: [f64; 3]) -> Result<[f32
             ));
         }
     }
+    let (lo, hi) = s.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), &v| {
+        (lo.min(v), hi.max(v))
+    });
+    if hi / lo > MAX_SPACING_RATIO {
+        return Err(VolumeError::format(
+            path,
+            format!(
+                "{what}: spacings {s:?} differ by more than a factor of {MAX_SPACING_RATIO:e}; \
+                 the volume would be a sheet without thickness"
+            ),
+        ));
+    }
     Ok([s[0] as f32, s[1] as f32, s[2] as f32])
 }
 
-const INITIAL_CAPACITY: usize = 1 << 22;
+/// Bytes of samples reserved before any data arrived (more as it is decoded): a header that
+/// declares a large volume over a small or compressed input reserves no more than this.
+const INITIAL_CAPACITY_BYTES: usize = 1 << 20;
 
 /// Grows `v` geometrically for `k` more elements, never beyond `expected` in total.
 fn grow<T>(v: &mut Vec<T>, k: usize, expected: usize) {
@@ -404,7 +424,7 @@ impl SampleBuilder {
             endian,
             // Capacity grows with the data actually decoded, so a header that lies about the
             // size cannot make us reserve memory for data that never arrives.
-            samples: Samples::with_capacity(ty, expected.min(INITIAL_CAPACITY)),
+            samples: Samples::with_capacity(ty, expected.min(INITIAL_CAPACITY_BYTES / ty.size())),
             carry: [0; 8],
             carry_len: 0,
             expected,

@@ -370,8 +370,9 @@ fn parse_ascii(
     ty: SampleType,
     count: usize,
 ) -> Result<Samples, VolumeError> {
+    // Every value takes at least two bytes (digit and separator): no more can be in `text`.
+    let mut vals = Vec::with_capacity(count.min(text.len() / 2 + 1));
     let text = String::from_utf8_lossy(text);
-    let mut vals = Vec::with_capacity(count.min(1 << 24));
     for tok in text.split_whitespace() {
         let v: f64 = tok.parse().map_err(|_| {
             VolumeError::format(path, format!("ascii DataArray: {tok:?} is not a number"))

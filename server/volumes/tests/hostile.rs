@@ -966,3 +966,134 @@ fn mutation_fuzz_never_panics() {
         "many mutations should produce errors: {outcomes:?}"
     );
 }
+
+// ---------- devices, pipes and endless data ----------
+
+/// Runs `f` on a thread and fails if it takes longer than `secs` (a hang is a failure, not a
+/// stuck test run).
+fn within<T: Send + 'static>(secs: u64, f: impl FnOnce() -> T + Send + 'static) -> T {
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let _ = tx.send(f());
+    });
+    rx.recv_timeout(std::time::Duration::from_secs(secs))
+        .expect("the loader hung (or used all memory) on endless input")
+}
+
+#[cfg(unix)]
+#[test]
+fn a_device_as_nrrd_data_file_is_refused() {
+    // `data file: /dev/zero` with ascii encoding read lines that never end (unbounded
+    // memory); with `line skip` it skipped endless 1 MiB "lines" (a hang).
+    let t = Tmp::new();
+    for fields in [
+        "type: uint8\ndimension: 3\nsizes: 4 4 4\nencoding: ascii\ndata file: /dev/zero",
+        "type: uint8\ndimension: 3\nsizes: 4 4 4\nencoding: raw\nline skip: 1000000000\ndata file: /dev/zero",
+        "type: uint8\ndimension: 3\nsizes: 4 4 4\nencoding: gzip\ndata file: /dev/zero",
+        "type: uint8\ndimension: 3\nsizes: 4 4 4\nencoding: raw\ndata file: /dev/zero",
+        "type: uint8\ndimension: 3\nsizes: 4 4 4\nencoding: raw\ndata file: .",
+    ] {
+        let p = t.write("dev.nhdr", format!("NRRD0004\n{fields}\n").as_bytes());
+        let e = within(20, move || {
+            load_raw(&p).map(|r| r.voxel_count()).unwrap_err()
+        });
+        assert!(e.to_string().contains("regular file"), "{e}");
+    }
+}
+
+#[cfg(unix)]
+#[test]
+fn a_link_to_a_device_is_not_a_volume() {
+    let t = Tmp::new();
+    for name in [
+        "zero.vti",
+        "zero.nrrd",
+        "zero.nii",
+        "zero.nii.gz",
+        "zero.dcm",
+        "zero.bin",
+    ] {
+        let link = t.0.path().join(name);
+        std::os::unix::fs::symlink("/dev/zero", &link).unwrap();
+        let e = within(20, move || {
+            load_raw(&link).map(|r| r.voxel_count()).unwrap_err()
+        });
+        assert!(e.to_string().contains("regular file"), "{name}: {e}");
+    }
+}
+
+#[test]
+fn ascii_data_is_bounded_by_what_is_there() {
+    // A token that never ends, and a header that declares 2³¹ values over a few bytes.
+    let t = Tmp::new();
+    let long = "7".repeat(100_000);
+    let f = "type: uint8\ndimension: 3\nsizes: 2 2 2\nencoding: ascii";
+    expect_err(
+        load_raw(&t.write("long.nrrd", &nrrd(f, long.as_bytes()))),
+        &["ascii data", "longer than"],
+    );
+    let f = "type: double\ndimension: 3\nsizes: 2048 1024 1024\nencoding: ascii";
+    expect_err(
+        load_raw(&t.write("few.nrrd", &nrrd(f, b"1 2 3\n4, 5\n"))),
+        &["truncated", "found 5"],
+    );
+    // Values split across lines, commas and blank lines still parse; extra ones are ignored.
+    let f = "type: int16\ndimension: 3\nsizes: 2 2 2\nencoding: ascii";
+    let r = load_raw(&t.write("ok.nrrd", &nrrd(f, b"1 2,3\n\n4\t5 6\r\n7 8 9 junk"))).unwrap();
+    assert_eq!(r.samples, Samples::I16(vec![1, 2, 3, 4, 5, 6, 7, 8]));
+}
+
+// ---------- degenerate geometry ----------
+
+#[test]
+fn spacings_that_flatten_the_box_are_refused() {
+    // Found by the load_raw fuzz target: a subnormal spacing (1e-45) passed the checks, and
+    // the volume's world extent rounded to 0 on that axis (a box without thickness, a march
+    // step of 0 on the GPU).
+    let t = Tmp::new();
+    let p = t.write("r.raw", &[7u8; 36]);
+    for spacing in [[1e-45, 1.0, 1.0], [1.0, 1e-30, 1e30], [1.0, 1.0, 2e6]] {
+        expect_err(
+            load_raw_file(&p, [1, 9, 4], SampleType::U8, Endian::Little, spacing, 0),
+            &["spacing"],
+        );
+    }
+    let ok = load_raw_file(
+        &p,
+        [1, 9, 4],
+        SampleType::U8,
+        Endian::Little,
+        [1e-3, 1.0, 900.0],
+        0,
+    )
+    .unwrap()
+    .normalize("ok");
+    assert!(ok.world_extent().iter().all(|e| e.is_normal()));
+    // The same through every format's header.
+    let f = "type: uint8\ndimension: 3\nsizes: 2 2 2\nencoding: raw\nspacings: 1e-45 1 1";
+    expect_err(
+        load_raw(&t.write("s.nrrd", &nrrd(f, &[1; 8]))),
+        &["spacing"],
+    );
+    let f = "type: uint8\ndimension: 3\nsizes: 2 2 2\nencoding: raw\nspace directions: (1e-30,0,0) (0,1e30,0) (0,0,1)";
+    expect_err(
+        load_raw(&t.write("d.nrrd", &nrrd(f, &[1; 8]))),
+        &["spacing"],
+    );
+    let mut nii = nifti_header(Endian::Little, [2, 2, 2], 2, 8, [1e-45, 1.0, 1.0]);
+    nii.extend([1u8; 8]);
+    expect_err(load_raw(&t.write("s.nii", &nii)), &["pixdim"]);
+    let v = vti(
+        "UInt32",
+        false,
+        "UInt8",
+        "0 1 0 1 0 1",
+        "1 1e-38 1",
+        &[uint(4, 8), vec![1; 8]].concat(),
+    );
+    expect_err(load_raw(&t.write("s.vti", &v)), &["Spacing"]);
+    // A 2D image is as thick as its finer pixel edge, not 1 (an image in metres stays flat).
+    let f = "type: uint8\ndimension: 2\nsizes: 4 4\nencoding: raw\nspacings: 0.001 0.002";
+    let r = load_raw(&t.write("2d.nrrd", &nrrd(f, &[1; 16]))).unwrap();
+    assert_eq!(r.spacing, [0.001, 0.002, 0.001]);
+}
