@@ -93,17 +93,7 @@ impl TestServer {
 
     /// `GET /metrics`, as text.
     pub async fn metrics(&self) -> String {
-        use http_body_util::BodyExt;
-        use tower::ServiceExt;
-        let request = axum::http::Request::get("/metrics")
-            .body(axum::body::Body::empty())
-            .expect("request");
-        let response = voxlight_server::app(self.state.clone())
-            .oneshot(request)
-            .await
-            .expect("metrics route");
-        let body = response.into_body().collect().await.expect("metrics body");
-        String::from_utf8_lossy(&body.to_bytes()).into_owned()
+        self.get("/metrics").await.1
     }
 
     /// One metric's value (the first line starting with `prefix`).
