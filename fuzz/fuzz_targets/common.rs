@@ -9,17 +9,22 @@ use std::sync::OnceLock;
 use voxlight_protocol::DatasetDetails;
 use voxlight_volumes::{Volume, VolumeError};
 
-/// A folder for the files a target writes, made once per process.
+/// A folder for the files a target writes, made once per process: `voxlight-fuzz-*` in
+/// /dev/shm (or the temp folder). libFuzzer exits without dropping it: remove them after a
+/// campaign.
 pub fn scratch() -> &'static Path {
     static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
     DIR.get_or_init(|| {
         let shm = Path::new("/dev/shm");
-        let dir = if shm.is_dir() {
-            tempfile::tempdir_in(shm)
+        let parent = if shm.is_dir() {
+            shm.to_owned()
         } else {
-            tempfile::tempdir()
+            std::env::temp_dir()
         };
-        dir.expect("scratch folder")
+        tempfile::Builder::new()
+            .prefix("voxlight-fuzz-")
+            .tempdir_in(parent)
+            .expect("scratch folder")
     })
     .path()
 }

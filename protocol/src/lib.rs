@@ -158,7 +158,8 @@ pub enum ClientMessage {
         protocol: u32,
         /// Join an existing session (the id from its `welcome`) instead of starting a new one.
         /// When joining, `viewport`, `dataset` and `technique` are ignored: the session's own
-        /// state wins and arrives in `welcome`.
+        /// state wins and arrives in `welcome` (a `viewport` or `technique_options` out of range
+        /// is still refused).
         #[serde(default)]
         session: Option<String>,
         #[serde(default)]

@@ -116,16 +116,36 @@ fn parse(message: Message) -> Result<Option<ClientMessage>, Reply> {
 
 /// Every check of a client message that needs no session state: ranges, finite numbers,
 /// list lengths. `handle_message` runs it before touching the session (so a refused message
-/// has no effect at all); what depends on the session or the GPU (the viewport's pixel budget,
-/// technique names, dataset names, `hello`'s new-session fields) is checked where it is used.
+/// has no effect at all), `open_or_join` before anything else; what depends on the session or
+/// the GPU (the viewport's pixel budget, technique and dataset names) is checked where it is
+/// used. A message it accepts carries no number out of its documented range.
 pub fn validate_message(message: &ClientMessage) -> Result<(), Reply> {
     match message {
-        ClientMessage::Hello { max_in_flight, .. } => match max_in_flight {
-            Some(n) if !(1..=MAX_FRAMES_IN_FLIGHT).contains(n) => Err(Reply::bad(format!(
-                "max_in_flight must be in 1..={MAX_FRAMES_IN_FLIGHT}, got {n}"
-            ))),
-            _ => Ok(()),
-        },
+        ClientMessage::Hello {
+            viewport,
+            technique_options,
+            max_in_flight,
+            ..
+        } => {
+            if let Some(n) = max_in_flight
+                && !(1..=MAX_FRAMES_IN_FLIGHT).contains(n)
+            {
+                return Err(Reply::bad(format!(
+                    "max_in_flight must be in 1..={MAX_FRAMES_IN_FLIGHT}, got {n}"
+                )));
+            }
+            // Checked when joining too, where they are not used: a value out of range is a
+            // client bug either way.
+            if let Some(viewport) = viewport {
+                validate_viewport(viewport).map_err(Reply::bad)?;
+            }
+            match technique_options {
+                Some(options) => {
+                    voxlight_engine::technique_options::validate(options).map_err(Reply::bad)
+                }
+                None => Ok(()),
+            }
+        }
         ClientMessage::Camera(camera) => CameraBasis::new(camera).map(|_| ()).map_err(Reply::bad),
         ClientMessage::Tf(tf) => voxlight_engine::tf::validate(tf).map_err(Reply::bad),
         ClientMessage::Lights { lights } => validate_lights(lights).map_err(Reply::bad),
@@ -563,8 +583,8 @@ async fn open_or_join(
     check_viewport(state, &viewport)?;
     let technique = technique.unwrap_or_else(|| "raymarch".to_owned());
     check_technique(state, &technique)?;
+    // `validate_message` checked the options' ranges.
     let technique_options = technique_options.unwrap_or_default();
-    voxlight_engine::technique_options::validate(&technique_options).map_err(Reply::bad)?;
     let dataset = dataset.unwrap_or_else(|| state.default_dataset.clone());
     let volume = load_dataset(state, &dataset, progress_to(progress, &dataset)).await?;
     let scene = Scene {
@@ -743,7 +763,6 @@ async fn handle_message(
     link: &ViewerLink,
 ) -> Result<(), Reply> {
     let arrived = Instant::now();
-    validate_message(&message)?;
     match message {
         ClientMessage::Hello { .. } => {
             return Err(Reply::new(
@@ -772,6 +791,7 @@ async fn handle_message(
         }
         _ => {}
     }
+    validate_message(&message)?;
     let mut core = session.core.lock().await;
     let mut scene = core.scene.clone();
     let (change, edit) = match message {
