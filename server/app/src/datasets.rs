@@ -241,7 +241,9 @@ impl Catalog {
             ms = started.elapsed().as_millis() as u64,
             "DICOMweb series fetched"
         );
-        voxlight_volumes::load(folder.path()).map_err(load_error)
+        let mut volume = voxlight_volumes::load(folder.path()).map_err(load_error)?;
+        without_folder(&mut volume.warnings, folder.path());
+        Ok(volume)
     }
 
     /// `load`, calling `progress(done, total)` while a remote series arrives (instances).
@@ -269,7 +271,13 @@ impl Catalog {
             source,
         };
         let mut volume = match (&entry.path, &entry.remote) {
-            (Some(path), _) => voxlight_volumes::load(path).map_err(load_error)?,
+            (Some(path), _) => {
+                let mut volume = voxlight_volumes::load(path).map_err(load_error)?;
+                if let Some(folder) = path.parent() {
+                    without_folder(&mut volume.warnings, folder);
+                }
+                volume
+            }
             (None, Some(remote)) => self.load_remote(remote, name, progress)?,
             (None, None) => {
                 voxlight_volumes::phantom(name.trim_start_matches("phantom:"), PHANTOM_SIZE)
@@ -312,6 +320,15 @@ impl Catalog {
             loaded.insert(name.to_owned(), Arc::downgrade(&volume));
         }
         Ok(volume)
+    }
+}
+
+/// Loader warnings as viewers may read them: `folder` (a server path) left out of every file
+/// path, the names below it kept (clients never see server paths).
+fn without_folder(warnings: &mut [String], folder: &Path) {
+    let prefix = format!("{}{}", folder.display(), std::path::MAIN_SEPARATOR);
+    for warning in warnings.iter_mut().filter(|w| w.contains(&prefix)) {
+        *warning = warning.replace(&prefix, "");
     }
 }
 
@@ -440,6 +457,17 @@ pub fn default_lights_for(volume: &Volume) -> Vec<Light> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn warnings_lose_the_server_folder_and_keep_file_names() {
+        let mut warnings = vec![
+            "skipped 1 file: /srv/data/ct/notes.txt: not DICOM".to_owned(),
+            "spacing not uniform".to_owned(),
+        ];
+        without_folder(&mut warnings, Path::new("/srv/data"));
+        assert_eq!(warnings[0], "skipped 1 file: ct/notes.txt: not DICOM");
+        assert_eq!(warnings[1], "spacing not uniform");
+    }
 
     #[test]
     fn a_volume_that_fits_is_left_alone() {
