@@ -131,12 +131,13 @@ pub fn load(bench: &LoadBench) -> anyhow::Result<serde_json::Value> {
         times.sort_by(f64::total_cmp);
         let median = times[times.len() / 2];
         let ratio = peak as f64 / volume_bytes.max(1) as f64;
+        let on_disk = bytes_on_disk(&path);
         eprintln!(
             "{name}: {} ms, peak +{} MiB for a {} MiB volume ({ratio:.2}×), {} MiB on disk",
             median.round(),
             peak >> 20,
             volume_bytes >> 20,
-            bytes_on_disk(&path) >> 20
+            on_disk >> 20
         );
         rows.push(json!({
             "dataset": name,
@@ -145,7 +146,7 @@ pub fn load(bench: &LoadBench) -> anyhow::Result<serde_json::Value> {
             "peak_bytes": peak,
             "volume_bytes": volume_bytes,
             "peak_over_volume": ratio,
-            "bytes_on_disk": bytes_on_disk(&path),
+            "bytes_on_disk": on_disk,
         }));
     }
     Ok(json!({ "bench": "load", "repeats": bench.repeats.max(1), "datasets": rows }))

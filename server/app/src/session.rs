@@ -515,15 +515,19 @@ fn welcome(
     })
 }
 
-/// Progress messages for a viewer that has no session yet (the newest may replace older ones).
-fn progress_to(viewer: mpsc::Sender<ServerMessage>, dataset: &str) -> Progress {
+/// `loading` messages for `dataset`, handed to `deliver` (a viewer's channel before it has a
+/// session, or a session's broadcast on a dataset switch).
+fn loading_progress(
+    dataset: &str,
+    deliver: impl Fn(ServerMessage) + Send + Sync + 'static,
+) -> Progress {
     let dataset = dataset.to_owned();
     Box::new(move |done, total| {
-        let _ = viewer.try_send(ServerMessage::Loading {
+        deliver(ServerMessage::Loading {
             dataset: dataset.clone(),
             done,
             total,
-        });
+        })
     })
 }
 
@@ -586,7 +590,11 @@ async fn open_or_join(
     // `validate_message` checked the options' ranges.
     let technique_options = technique_options.unwrap_or_default();
     let dataset = dataset.unwrap_or_else(|| state.default_dataset.clone());
-    let volume = load_dataset(state, &dataset, progress_to(progress, &dataset)).await?;
+    let progress = loading_progress(&dataset, move |message| {
+        // A full channel drops this update; the writer is behind and a later one follows.
+        let _ = progress.try_send(message);
+    });
+    let volume = load_dataset(state, &dataset, progress).await?;
     let scene = Scene {
         tf: crate::datasets::default_tf(&volume),
         lights: crate::datasets::default_lights_for(&volume),
@@ -877,13 +885,8 @@ async fn handle_message(
         }
         ClientMessage::Dataset { name } => {
             let events = session.events.clone();
-            let loading = name.clone();
-            let progress: Progress = Box::new(move |done, total| {
-                let _ = events.send(Arc::new(ServerMessage::Loading {
-                    dataset: loading.clone(),
-                    done,
-                    total,
-                }));
+            let progress = loading_progress(&name, move |message| {
+                let _ = events.send(Arc::new(message));
             });
             let volume = load_dataset(state, &name, progress).await?;
             // A new dataset is a new scene: its own default TF and lights.
