@@ -222,7 +222,8 @@ conn.addEventListener('welcome', (/** @type {any} */ e) => {
   resetOwnEdits();
   hideOverlay();
   setConnDot('on');
-  $('st-adapter').textContent = `${w.adapter || '?'}${w.software_renderer ? ' (software, no GPU)' : ''} · server ${w.server_version || '?'} · session ${String(w.session || '').slice(0, 8)}`;
+  // The software flag first: the status bar cuts long adapter names short.
+  $('st-adapter').textContent = `${w.software_renderer ? 'software, no GPU: ' : ''}${w.adapter || '?'} · server ${w.server_version || '?'} · session ${String(w.session || '').slice(0, 8)}`;
   fillTechniques(vx.techniques);
   setViewers(w.viewers, false);
   serverDraining = false;
