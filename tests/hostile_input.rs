@@ -691,13 +691,6 @@ fn allocation_bound(len: usize) -> usize {
     (24 << 20) + 1100 * len
 }
 
-/// Whether DICOM loads are held to [`allocation_bound`]. Not yet: dicom-object reserves the
-/// declared length of a file-meta element with an invalid VR before reading it (up to 4 GiB
-/// for a 1 KiB file; `fuzz/findings/README.md`). Until the DICOM loader checks those lengths,
-/// DICOM inputs are only held to "no panic" here, and `dicom_findings_stay_bounded` (ignored)
-/// shows the finding; set this to true with the fix.
-const DICOM_ALLOCATION_BOUNDED: bool = false;
-
 fn check_load(target: &str, bytes: &[u8], case: u64) -> Result<(), TestCaseError> {
     use std::sync::atomic::{AtomicU64, Ordering};
     static SERIAL: AtomicU64 = AtomicU64::new(0);
@@ -715,9 +708,8 @@ fn check_load(target: &str, bytes: &[u8], case: u64) -> Result<(), TestCaseError
     let (result, peak) = peak_of(|| voxlight_volumes::load(&path).map(|v| v.voxel_count()));
     let _ = std::fs::remove_file(&path);
     let _ = std::fs::remove_file(&image);
-    let bounded = target != "load_dicom" || DICOM_ALLOCATION_BOUNDED;
     prop_assert!(
-        !bounded || peak <= allocation_bound(bytes.len()),
+        peak <= allocation_bound(bytes.len()),
         "loading a {}-byte {target} file allocated {peak} bytes ({result:?})",
         bytes.len()
     );
@@ -978,27 +970,6 @@ fn replay_raw(data: &[u8]) {
                 .world_extent()
                 .iter()
                 .all(|e| e.is_normal() && *e <= 1.0)
-        );
-    }
-}
-
-/// The open DICOM finding (see [`DICOM_ALLOCATION_BOUNDED`]): run with `--ignored` to check a
-/// fix, then move the files to `fuzz/regressions/load_dicom/` and un-ignore.
-#[test]
-#[ignore = "open finding in the DICOM loader: fuzz/findings/README.md"]
-fn dicom_findings_stay_bounded() {
-    let dir = seeds_dir().join("../findings/load_dicom");
-    for entry in std::fs::read_dir(&dir).expect("findings folder") {
-        let path = entry.expect("finding").path();
-        let bytes = std::fs::read(&path).expect("finding bytes");
-        let file = scratch().join("finding.dcm");
-        std::fs::write(&file, &bytes).expect("scratch file");
-        let (result, peak) = peak_of(|| voxlight_volumes::load(&file).map(|v| v.voxel_count()));
-        assert!(
-            peak <= allocation_bound(bytes.len()),
-            "{}: {peak} bytes allocated for {} bytes ({result:?})",
-            path.display(),
-            bytes.len()
         );
     }
 }

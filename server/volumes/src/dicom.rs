@@ -221,6 +221,14 @@ fn prescan(b: &[u8]) -> Result<Prescan, String> {
     while rd16(b, pos, false) == Some(0x0002) {
         let elem = rd16(b, pos + 2, false).ok_or_else(|| trunc(pos))?;
         let vr = b.get(pos + 4..pos + 6).ok_or_else(|| trunc(pos))?;
+        // dicom-object reads an unknown VR in long form and reserves the 4-byte "length" it
+        // finds there before failing (775 MB for a 1 KiB file): refuse it here.
+        if !LONG_VRS.iter().chain(SHORT_VRS).any(|v| &v[..] == vr) {
+            return Err(format!(
+                "file meta element (0002,{elem:04X}) at byte {pos} has an invalid value representation {:02X} {:02X}",
+                vr[0], vr[1]
+            ));
+        }
         let (len, hdr) = if LONG_VRS.iter().any(|v| &v[..] == vr) {
             (
                 rd32(b, pos + 8, false).ok_or_else(|| trunc(pos))? as usize,
@@ -236,6 +244,11 @@ fn prescan(b: &[u8]) -> Result<Prescan, String> {
         let val = b.get(start..start.saturating_add(len)).ok_or_else(|| {
             format!("file meta element (0002,{elem:04X}) declares {len} bytes at byte {start}, beyond the end of the file ({} bytes)", b.len())
         })?;
+        if vr == b"UI" && len > 64 {
+            return Err(format!(
+                "file meta element (0002,{elem:04X}) is a UID of {len} bytes (at most 64)"
+            ));
+        }
         if elem == 0x0010 {
             ts = Some(
                 String::from_utf8_lossy(val)
