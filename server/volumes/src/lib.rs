@@ -154,7 +154,21 @@ pub fn default_name(path: &Path) -> String {
 
 /// Loads and normalizes a volume ([`load_raw`] + [`RawVolume::normalize`]), named by
 /// [`default_name`].
+///
+/// NRRD, NIfTI and VTI samples that are not 16-bit (and rescaled NIfTI) are read straight to 16
+/// bits (8-bit ones widened in one pass, wider ones read twice: their range, then their
+/// quantization), so the peak memory is the 16-bit volume and not the samples beside it; the
+/// result equals [`load_raw`] + [`RawVolume::normalize`] exactly.
 pub fn load(path: &Path) -> Result<Volume, VolumeError> {
-    let raw = load_raw(path)?;
-    Ok(raw.normalize(&default_name(path)))
+    let name = default_name(path);
+    let (raw, streamed) = match detect(path)? {
+        Kind::Nrrd => nrrd::load_nrrd_with(path, true)?,
+        Kind::Nifti => nifti::load_nifti_with(path, true)?,
+        Kind::Vti => vti::load_vti_with(path, true)?,
+        _ => (load_raw(path)?, None),
+    };
+    Ok(match streamed {
+        Some(s) => volume::assemble(raw, s.data, s.range, &name),
+        None => raw.normalize(&name),
+    })
 }

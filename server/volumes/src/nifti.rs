@@ -7,7 +7,8 @@ use std::path::{Path, PathBuf};
 use flate2::bufread::MultiGzDecoder;
 
 use crate::raw::{
-    RawVolume, SampleType, Samples, byte_count, check_dims, check_spacing, read_samples,
+    Affine, Decoded, RawVolume, SampleMode, SampleType, Samples, Streamed, byte_count, check_dims,
+    check_spacing, read_samples_mode, read_streamed, reads_streamed,
 };
 use crate::{Endian, VolumeError};
 
@@ -95,6 +96,15 @@ fn datatype(code: i16) -> Result<SampleType, String> {
 
 /// Loads a NIfTI-1 file.
 pub fn load_nifti(path: &Path) -> Result<RawVolume, VolumeError> {
+    load_nifti_with(path, false).map(|(raw, _)| raw)
+}
+
+/// [`load_nifti`]; with `streaming`, samples that are not 16-bit (or are rescaled) are read
+/// straight to 16 bits ([`read_streamed`]; the [`RawVolume`] then holds none).
+pub(crate) fn load_nifti_with(
+    path: &Path,
+    streaming: bool,
+) -> Result<(RawVolume, Option<Streamed>), VolumeError> {
     let mut r = open_maybe_gz(path)?;
     let mut hb = [0u8; HEADER_SIZE];
     let got = read_full(&mut r, &mut hb).map_err(|e| {
@@ -254,7 +264,8 @@ pub fn load_nifti(path: &Path) -> Result<RawVolume, VolumeError> {
         dims[0], dims[1], dims[2]
     );
 
-    let samples = if single_file {
+    // Where the voxel data starts: the file (or `.img`) and the bytes before it.
+    let (data_path, offset) = if single_file {
         if !vox_offset.is_finite() || vox_offset < HEADER_SIZE as f32 || vox_offset > 1e12 {
             return Err(VolumeError::format(
                 path,
@@ -263,7 +274,6 @@ pub fn load_nifti(path: &Path) -> Result<RawVolume, VolumeError> {
                 ),
             ));
         }
-        let skip = vox_offset as u64 - HEADER_SIZE as u64;
         if !is_gz(path) {
             let len = std::fs::metadata(path)
                 .map_err(|e| VolumeError::io(path, "reading the file size", e))?
@@ -279,18 +289,7 @@ pub fn load_nifti(path: &Path) -> Result<RawVolume, VolumeError> {
                 ));
             }
         }
-        let skipped = std::io::copy(&mut (&mut r).take(skip), &mut std::io::sink())
-            .map_err(|e| VolumeError::io(path, "skipping the NIfTI extensions", e))?;
-        if skipped < skip {
-            return Err(VolumeError::format(
-                path,
-                format!(
-                    "file ends at byte {} before vox_offset {vox_offset}",
-                    HEADER_SIZE as u64 + skipped
-                ),
-            ));
-        }
-        read_samples(r, ty, e, count, path, &what)?
+        (path.to_path_buf(), vox_offset as u64)
     } else {
         let img = companion_image(path)?;
         let offset = if vox_offset.is_finite() && vox_offset > 0.0 {
@@ -298,42 +297,63 @@ pub fn load_nifti(path: &Path) -> Result<RawVolume, VolumeError> {
         } else {
             0
         };
-        let mut ir = open_maybe_gz(&img)?;
-        let skipped = std::io::copy(&mut (&mut ir).take(offset), &mut std::io::sink())
-            .map_err(|e| VolumeError::io(&img, "skipping to vox_offset", e))?;
+        (img, offset)
+    };
+    // Each pass reads from the start again (the streaming passes of `load` read twice).
+    let read = |mode: SampleMode| -> Result<Decoded, VolumeError> {
+        let mut r = open_maybe_gz(&data_path)?;
+        let skipped = std::io::copy(&mut (&mut r).take(offset), &mut std::io::sink())
+            .map_err(|e| VolumeError::io(&data_path, "skipping to vox_offset", e))?;
         if skipped < offset {
             return Err(VolumeError::format(
-                &img,
-                format!("file ends before vox_offset {offset}"),
+                &data_path,
+                format!("file ends at byte {skipped} before vox_offset {offset}"),
             ));
         }
-        read_samples(ir, ty, e, count, &img, &what)?
+        read_samples_mode(r, ty, e, count, &data_path, &what, mode)
     };
 
     // Apply scl_slope / scl_inter when they are not the identity.
     let scaled =
         slope != 0.0 && slope.is_finite() && inter.is_finite() && !(slope == 1.0 && inter == 0.0);
-    let samples = if scaled {
-        let f = |x: f64| (x * slope as f64 + inter as f64) as f32;
-        let out: Vec<f32> = match &samples {
-            Samples::U8(v) => v.iter().map(|&x| f(x as f64)).collect(),
-            Samples::I8(v) => v.iter().map(|&x| f(x as f64)).collect(),
-            Samples::U16(v) => v.iter().map(|&x| f(x as f64)).collect(),
-            Samples::I16(v) => v.iter().map(|&x| f(x as f64)).collect(),
-            Samples::U32(v) => v.iter().map(|&x| f(x as f64)).collect(),
-            Samples::I32(v) => v.iter().map(|&x| f(x as f64)).collect(),
-            Samples::F32(v) => v.iter().map(|&x| f(x as f64)).collect(),
-            Samples::F64(v) => v.iter().map(|&x| f(x)).collect(),
-        };
-        Samples::F32(out)
+    if !scaled && (slope.is_nan() || inter.is_nan() || slope.is_infinite() || inter.is_infinite()) {
+        warnings.push(format!(
+            "{}: NIfTI scl_slope/scl_inter ({slope}, {inter}) are not finite; ignored",
+            path.display()
+        ));
+    }
+    let affine = scaled.then_some(Affine {
+        slope: slope as f64,
+        inter: inter as f64,
+    });
+    let (samples, streamed) = if streaming && reads_streamed(ty, scaled) {
+        let out_ty = if scaled { SampleType::F32 } else { ty };
+        (
+            Samples::empty(out_ty),
+            Some(read_streamed(ty, affine, read)?),
+        )
     } else {
-        if slope.is_nan() || inter.is_nan() || slope.is_infinite() || inter.is_infinite() {
-            warnings.push(format!(
-                "{}: NIfTI scl_slope/scl_inter ({slope}, {inter}) are not finite; ignored",
-                path.display()
-            ));
-        }
-        samples
+        let Decoded::Samples(samples) = read(SampleMode::Keep)? else {
+            unreachable!("SampleMode::Keep decodes samples")
+        };
+        let samples = match affine {
+            Some(a) => {
+                let f = |x: f64| a.apply(x);
+                let out: Vec<f32> = match &samples {
+                    Samples::U8(v) => v.iter().map(|&x| f(x as f64)).collect(),
+                    Samples::I8(v) => v.iter().map(|&x| f(x as f64)).collect(),
+                    Samples::U16(v) => v.iter().map(|&x| f(x as f64)).collect(),
+                    Samples::I16(v) => v.iter().map(|&x| f(x as f64)).collect(),
+                    Samples::U32(v) => v.iter().map(|&x| f(x as f64)).collect(),
+                    Samples::I32(v) => v.iter().map(|&x| f(x as f64)).collect(),
+                    Samples::F32(v) => v.iter().map(|&x| f(x as f64)).collect(),
+                    Samples::F64(v) => v.iter().map(|&x| f(x)).collect(),
+                };
+                Samples::F32(out)
+            }
+            None => samples,
+        };
+        (samples, None)
     };
 
     let mut fmt = format!(
@@ -348,15 +368,18 @@ pub fn load_nifti(path: &Path) -> Result<RawVolume, VolumeError> {
         fmt.push_str(&format!(", scaled ×{slope} + {inter}"));
     }
     fmt.push(')');
-    Ok(RawVolume {
-        dims,
-        spacing,
-        samples,
-        units: String::new(),
-        modality: String::new(),
-        format: fmt,
-        warnings,
-    })
+    Ok((
+        RawVolume {
+            dims,
+            spacing,
+            samples,
+            units: String::new(),
+            modality: String::new(),
+            format: fmt,
+            warnings,
+        },
+        streamed,
+    ))
 }
 
 /// The `.img` (or `.img.gz`) file beside a `.hdr` header.

@@ -7,7 +7,8 @@ use std::path::{Path, PathBuf};
 use flate2::bufread::MultiGzDecoder;
 
 use crate::raw::{
-    RawVolume, SampleType, Samples, byte_count, check_dims, check_spacing, read_samples,
+    Decoded, RawVolume, SampleMode, SampleType, Samples, Streamed, byte_count, check_dims,
+    check_spacing, read_samples_mode, read_streamed, reads_streamed,
 };
 use crate::{Endian, VolumeError};
 
@@ -193,6 +194,15 @@ fn flat_spacing(spacing: &mut [f64; 3], spatial_axes: usize) {
 
 /// Loads a `.nrrd` or `.nhdr` file.
 pub fn load_nrrd(path: &Path) -> Result<RawVolume, VolumeError> {
+    load_nrrd_with(path, false).map(|(raw, _)| raw)
+}
+
+/// [`load_nrrd`]; with `streaming`, binary samples that are not 16-bit are read straight to 16
+/// bits ([`read_streamed`]; the [`RawVolume`] then holds none).
+pub(crate) fn load_nrrd_with(
+    path: &Path,
+    streaming: bool,
+) -> Result<(RawVolume, Option<Streamed>), VolumeError> {
     let mut file =
         File::open(path).map_err(|e| VolumeError::io(path, "opening the NRRD file", e))?;
     let header = read_header(path, &mut file)?;
@@ -432,80 +442,105 @@ pub fn load_nrrd(path: &Path) -> Result<RawVolume, VolumeError> {
     }
 
     let what = format!("NRRD data ({}×{}×{} {ty})", dims[0], dims[1], dims[2]);
-    let samples: Samples = match encoding {
-        Encoding::Raw => {
-            let offset = if byte_skip == -1 {
-                file_len.checked_sub(nbytes).ok_or_else(|| {
-                    VolumeError::format(
-                        &data_path,
-                        format!("data file is {file_len} bytes, smaller than the {nbytes} bytes the header declares"),
-                    )
-                })?
-            } else {
-                start.saturating_add(byte_skip as u64)
-            };
-            let available = file_len.saturating_sub(offset);
-            if available < nbytes {
-                return Err(VolumeError::format(
+    let raw_offset = if encoding == Encoding::Raw {
+        let offset = if byte_skip == -1 {
+            file_len.checked_sub(nbytes).ok_or_else(|| {
+                VolumeError::format(
                     &data_path,
-                    format!(
-                        "{what} is truncated: expected {nbytes} bytes at offset {offset}, the file has only {available}"
-                    ),
-                ));
-            }
-            if available > nbytes && byte_skip != -1 {
-                warnings.push(format!(
-                    "{}: {} bytes after the NRRD data were ignored",
-                    data_path.display(),
-                    available - nbytes
-                ));
-            }
-            data_file
-                .seek(SeekFrom::Start(offset))
-                .map_err(|e| VolumeError::io(&data_path, "seeking to the data", e))?;
-            read_samples(
-                BufReader::new(data_file),
-                ty,
-                endian,
-                count,
+                    format!("data file is {file_len} bytes, smaller than the {nbytes} bytes the header declares"),
+                )
+            })?
+        } else {
+            start.saturating_add(byte_skip as u64)
+        };
+        let available = file_len.saturating_sub(offset);
+        if available < nbytes {
+            return Err(VolumeError::format(
                 &data_path,
-                &what,
-            )?
+                format!(
+                    "{what} is truncated: expected {nbytes} bytes at offset {offset}, the file has only {available}"
+                ),
+            ));
         }
-        Encoding::Gzip => {
-            data_file
-                .seek(SeekFrom::Start(start))
-                .map_err(|e| VolumeError::io(&data_path, "seeking to the gzip data", e))?;
-            let mut dec = MultiGzDecoder::new(BufReader::new(data_file));
-            if byte_skip > 0 {
-                let skipped =
-                    std::io::copy(&mut (&mut dec).take(byte_skip as u64), &mut std::io::sink())
-                        .map_err(|e| {
-                            VolumeError::io(&data_path, "decompressing gzip data (byte skip)", e)
-                        })?;
-                if skipped < byte_skip as u64 {
-                    return Err(VolumeError::format(
-                        &data_path,
-                        format!("gzip data ends within the {byte_skip} bytes of \"byte skip\""),
-                    ));
+        if available > nbytes && byte_skip != -1 {
+            warnings.push(format!(
+                "{}: {} bytes after the NRRD data were ignored",
+                data_path.display(),
+                available - nbytes
+            ));
+        }
+        offset
+    } else {
+        0
+    };
+    // Each pass seeks to the data again (the streaming passes of `load` read twice).
+    let mut read = |mode: SampleMode| -> Result<Decoded, VolumeError> {
+        match encoding {
+            Encoding::Raw => {
+                data_file
+                    .seek(SeekFrom::Start(raw_offset))
+                    .map_err(|e| VolumeError::io(&data_path, "seeking to the data", e))?;
+                read_samples_mode(
+                    BufReader::new(&mut data_file),
+                    ty,
+                    endian,
+                    count,
+                    &data_path,
+                    &what,
+                    mode,
+                )
+            }
+            Encoding::Gzip => {
+                data_file
+                    .seek(SeekFrom::Start(start))
+                    .map_err(|e| VolumeError::io(&data_path, "seeking to the gzip data", e))?;
+                let mut dec = MultiGzDecoder::new(BufReader::new(&mut data_file));
+                if byte_skip > 0 {
+                    let skipped =
+                        std::io::copy(&mut (&mut dec).take(byte_skip as u64), &mut std::io::sink())
+                            .map_err(|e| {
+                                VolumeError::io(
+                                    &data_path,
+                                    "decompressing gzip data (byte skip)",
+                                    e,
+                                )
+                            })?;
+                    if skipped < byte_skip as u64 {
+                        return Err(VolumeError::format(
+                            &data_path,
+                            format!("gzip data ends within the {byte_skip} bytes of \"byte skip\""),
+                        ));
+                    }
                 }
+                read_samples_mode(
+                    dec,
+                    ty,
+                    endian,
+                    count,
+                    &data_path,
+                    &format!("{what}, gzip-decompressed"),
+                    mode,
+                )
             }
-            read_samples(
-                dec,
-                ty,
-                endian,
-                count,
-                &data_path,
-                &format!("{what}, gzip-decompressed"),
-            )?
-        }
-        Encoding::Ascii => {
-            data_file
-                .seek(SeekFrom::Start(start))
-                .map_err(|e| VolumeError::io(&data_path, "seeking to the ascii data", e))?;
-            read_ascii(BufReader::new(data_file), ty, count, &data_path)?
+            Encoding::Ascii => {
+                data_file
+                    .seek(SeekFrom::Start(start))
+                    .map_err(|e| VolumeError::io(&data_path, "seeking to the ascii data", e))?;
+                read_ascii(BufReader::new(&mut data_file), ty, count, &data_path)
+                    .map(Decoded::Samples)
+            }
         }
     };
+    // ASCII data is small and parsed once, into samples.
+    let (samples, streamed) =
+        if streaming && encoding != Encoding::Ascii && reads_streamed(ty, false) {
+            (Samples::empty(ty), Some(read_streamed(ty, None, read)?))
+        } else {
+            let Decoded::Samples(samples) = read(SampleMode::Keep)? else {
+                unreachable!("SampleMode::Keep decodes samples")
+            };
+            (samples, None)
+        };
 
     let enc_name = match encoding {
         Encoding::Raw => "raw",
@@ -522,15 +557,18 @@ pub fn load_nrrd(path: &Path) -> Result<RawVolume, VolumeError> {
     } else {
         String::new()
     };
-    Ok(RawVolume {
-        dims,
-        spacing,
-        samples,
-        units: String::new(),
-        modality: String::new(),
-        format: format!("NRRD ({enc_name}, {ty}{endian_s}, {attached})"),
-        warnings,
-    })
+    Ok((
+        RawVolume {
+            dims,
+            spacing,
+            samples,
+            units: String::new(),
+            modality: String::new(),
+            format: format!("NRRD ({enc_name}, {ty}{endian_s}, {attached})"),
+            warnings,
+        },
+        streamed,
+    ))
 }
 
 /// Longest value accepted in ascii data: a double needs at most ~25 characters.

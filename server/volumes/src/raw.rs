@@ -169,6 +169,11 @@ impl Samples {
         }
     }
 
+    /// No samples of type `ty`.
+    pub(crate) fn empty(ty: SampleType) -> Samples {
+        Samples::with_capacity(ty, 0)
+    }
+
     fn with_capacity(ty: SampleType, n: usize) -> Samples {
         match ty {
             SampleType::U8 => Samples::U8(Vec::with_capacity(n)),
@@ -385,7 +390,91 @@ fn grow<T>(v: &mut Vec<T>, k: usize, expected: usize) {
     }
 }
 
-/// Streaming decoder: accepts byte chunks of any size and converts them to typed samples.
+/// What a [`SampleBuilder`] does with the samples it decodes.
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum SampleMode {
+    /// Keep them in their stored type ([`RawVolume`]: exact values).
+    Keep,
+    /// First of two streaming passes: only their range (after `affine`).
+    Range { affine: Option<Affine> },
+    /// Second pass: quantize them (after `affine`) to 16 bits against the first pass's range.
+    Quantize {
+        affine: Option<Affine>,
+        quantizer: crate::volume::Quantizer,
+    },
+    /// 8-bit samples in one pass: their bit patterns widened to 16 bits, and their range (a
+    /// 256-entry table then quantizes them in place).
+    Widen,
+}
+
+/// A rescale `x * slope + inter` whose result is stored as `f32` (NIfTI's scl_slope/scl_inter).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct Affine {
+    pub slope: f64,
+    pub inter: f64,
+}
+
+impl Affine {
+    pub(crate) fn apply(self, x: f64) -> f32 {
+        (x * self.slope + self.inter) as f32
+    }
+}
+
+/// The finite range of a volume's values and how many were NaN ([`RawVolume::min_max`]'s rule).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct ValueRange {
+    pub min: f64,
+    pub max: f64,
+    pub nan: usize,
+}
+
+impl ValueRange {
+    fn empty() -> Self {
+        ValueRange {
+            min: f64::INFINITY,
+            max: f64::NEG_INFINITY,
+            nan: 0,
+        }
+    }
+
+    fn add(&mut self, x: f64) {
+        if x.is_finite() {
+            self.min = self.min.min(x);
+            self.max = self.max.max(x);
+        } else if x.is_nan() {
+            self.nan += 1;
+        }
+    }
+
+    fn finished(self) -> Self {
+        if self.min > self.max {
+            ValueRange {
+                min: 0.0,
+                max: 0.0,
+                nan: self.nan,
+            }
+        } else {
+            self
+        }
+    }
+}
+
+/// What a [`SampleBuilder`] produced, by its [`SampleMode`].
+pub(crate) enum Decoded {
+    Samples(Samples),
+    Range(ValueRange),
+    Quantized(Vec<u16>),
+    Widened {
+        patterns: Vec<u16>,
+        range: ValueRange,
+    },
+}
+
+/// Samples kept between flushes in the streaming modes (1 MiB of the widest type).
+const PASS_CHUNK: usize = 1 << 17;
+
+/// Streaming decoder: accepts byte chunks of any size and converts them to typed samples, or
+/// (in the two-pass modes) to their range or their 16-bit quantization without keeping them.
 pub(crate) struct SampleBuilder {
     ty: SampleType,
     endian: Endian,
@@ -393,6 +482,11 @@ pub(crate) struct SampleBuilder {
     carry: [u8; 8],
     carry_len: usize,
     expected: usize,
+    mode: SampleMode,
+    /// Samples already passed on to `range` or `quantized` (streaming modes).
+    flushed: usize,
+    range: ValueRange,
+    quantized: Vec<u16>,
 }
 
 macro_rules! push_typed {
@@ -417,23 +511,89 @@ macro_rules! push_typed {
 }
 
 impl SampleBuilder {
-    /// A builder expecting exactly `expected` samples (already validated against MAX_VOXELS).
-    pub(crate) fn new(ty: SampleType, endian: Endian, expected: usize) -> Self {
+    /// A builder expecting exactly `expected` samples (already validated against MAX_VOXELS),
+    /// handling them as `mode` says.
+    pub(crate) fn with_mode(
+        ty: SampleType,
+        endian: Endian,
+        expected: usize,
+        mode: SampleMode,
+    ) -> Self {
+        let kept = match mode {
+            SampleMode::Keep => expected,
+            _ => expected.min(PASS_CHUNK),
+        };
         SampleBuilder {
             ty,
             endian,
             // Capacity grows with the data actually decoded, so a header that lies about the
             // size cannot make us reserve memory for data that never arrives.
-            samples: Samples::with_capacity(ty, expected.min(INITIAL_CAPACITY_BYTES / ty.size())),
+            samples: Samples::with_capacity(ty, kept.min(INITIAL_CAPACITY_BYTES / ty.size())),
             carry: [0; 8],
             carry_len: 0,
             expected,
+            mode,
+            flushed: 0,
+            range: ValueRange::empty(),
+            // The quantizing pass follows a range pass that read every sample, so the size is
+            // known to be real: reserve it once (growing would copy a volume-sized buffer).
+            quantized: match mode {
+                SampleMode::Quantize { .. } => Vec::with_capacity(expected),
+                _ => Vec::new(),
+            },
+            // Widening is the only pass over the data: grow with it (see `grow`).
         }
     }
 
     /// Samples decoded so far.
     pub(crate) fn len(&self) -> usize {
-        self.samples.len()
+        self.flushed + self.samples.len()
+    }
+
+    /// Passes the samples held so far on to the range or the quantization (streaming modes).
+    fn flush(&mut self) {
+        let n = self.samples.len();
+        let (affine, quantizer) = match self.mode {
+            SampleMode::Keep => return,
+            SampleMode::Range { affine } => (affine, None),
+            SampleMode::Quantize { affine, quantizer } => (affine, Some(quantizer)),
+            SampleMode::Widen => {
+                grow(&mut self.quantized, n, self.expected);
+                let (out, range) = (&mut self.quantized, &mut self.range);
+                match &self.samples {
+                    Samples::U8(v) => v.iter().for_each(|&x| {
+                        range.add(x as f64);
+                        out.push(x as u16);
+                    }),
+                    Samples::I8(v) => v.iter().for_each(|&x| {
+                        range.add(x as f64);
+                        out.push(x as u8 as u16);
+                    }),
+                    // `read_streamed` widens 8-bit samples only.
+                    other => unreachable!("widening {:?}", other.sample_type()),
+                }
+                self.flushed += n;
+                each_samples!(&mut self.samples, v => v.clear());
+                return;
+            }
+        };
+        let value = |x: f64| match affine {
+            Some(a) => a.apply(x) as f64,
+            None => x,
+        };
+        match quantizer {
+            None => {
+                let range = &mut self.range;
+                each_samples!(&self.samples, v => v.iter().for_each(|&x| range.add(value(x as f64))));
+            }
+            Some(q) => {
+                grow(&mut self.quantized, n, self.expected);
+                let out = &mut self.quantized;
+                each_samples!(&self.samples, v => out.extend(v.iter().map(|&x| q.quantize(value(x as f64)))));
+            }
+        }
+        self.flushed += n;
+        each_samples!(&mut self.samples, v => v.clear());
     }
 
     /// True once `expected` samples have been decoded.
@@ -466,7 +626,21 @@ impl SampleBuilder {
     }
 
     fn push_whole(&mut self, bytes: &[u8]) -> usize {
-        let room = self.expected.saturating_sub(self.samples.len());
+        if matches!(self.mode, SampleMode::Keep) {
+            return self.push_kept(bytes);
+        }
+        let size = self.ty.size();
+        let mut used = 0;
+        while used + size <= bytes.len() && !self.is_full() {
+            let take = (bytes.len() - used).min(PASS_CHUNK * size);
+            used += self.push_kept(&bytes[used..used + take]);
+            self.flush();
+        }
+        used
+    }
+
+    fn push_kept(&mut self, bytes: &[u8]) -> usize {
+        let room = self.expected.saturating_sub(self.len());
         let e = self.endian;
         let expected = self.expected;
         match &mut self.samples {
@@ -491,9 +665,18 @@ impl SampleBuilder {
         }
     }
 
-    /// The decoded samples.
-    pub(crate) fn finish(self) -> Samples {
-        self.samples
+    /// What the builder's mode produced.
+    pub(crate) fn finish_decoded(mut self) -> Decoded {
+        self.flush();
+        match self.mode {
+            SampleMode::Keep => Decoded::Samples(self.samples),
+            SampleMode::Range { .. } => Decoded::Range(self.range.finished()),
+            SampleMode::Quantize { .. } => Decoded::Quantized(self.quantized),
+            SampleMode::Widen => Decoded::Widened {
+                patterns: self.quantized,
+                range: self.range.finished(),
+            },
+        }
     }
 }
 
@@ -507,9 +690,25 @@ pub(crate) fn read_samples(
     path: &Path,
     what: &str,
 ) -> Result<Samples, VolumeError> {
+    match read_samples_mode(reader, ty, endian, count, path, what, SampleMode::Keep)? {
+        Decoded::Samples(samples) => Ok(samples),
+        _ => unreachable!("SampleMode::Keep decodes samples"),
+    }
+}
+
+/// [`read_samples`] with the samples handled as `mode` says.
+pub(crate) fn read_samples_mode(
+    reader: impl Read,
+    ty: SampleType,
+    endian: Endian,
+    count: usize,
+    path: &Path,
+    what: &str,
+    mode: SampleMode,
+) -> Result<Decoded, VolumeError> {
     let expected_bytes = count as u64 * ty.size() as u64;
     let mut reader = reader.take(expected_bytes);
-    let mut b = SampleBuilder::new(ty, endian, count);
+    let mut b = SampleBuilder::with_mode(ty, endian, count, mode);
     let mut buf = vec![0u8; 1 << 20];
     let mut got: u64 = 0;
     while !b.is_full() {
@@ -537,7 +736,63 @@ pub(crate) fn read_samples(
             ),
         ));
     }
-    Ok(b.finish())
+    Ok(b.finish_decoded())
+}
+
+/// Samples read in two streaming passes straight to 16 bits: the volume's data and the range
+/// it was quantized against ([`crate::volume::assemble`] makes the [`crate::Volume`]).
+pub(crate) struct Streamed {
+    pub data: Vec<u16>,
+    pub range: ValueRange,
+}
+
+/// Whether `load` streams samples of `ty` straight to 16 bits ([`read_streamed`]): every type
+/// but 16-bit (whose quantization rewrites the samples in their own allocation), and every
+/// rescaled type (the rescale makes 32-bit floats). Peak memory is then the 16-bit volume, not
+/// the samples beside it.
+pub(crate) fn reads_streamed(ty: SampleType, rescaled: bool) -> bool {
+    rescaled || ty.size() != 2
+}
+
+/// Reads a volume's samples of type `ty` through `read` straight to 16 bits: 8-bit samples in
+/// one pass (widened, then quantized in place by a table), wider or rescaled ones in two (their
+/// range, then their quantization).
+pub(crate) fn read_streamed(
+    ty: SampleType,
+    affine: Option<Affine>,
+    mut read: impl FnMut(SampleMode) -> Result<Decoded, VolumeError>,
+) -> Result<Streamed, VolumeError> {
+    if ty.size() == 1 && affine.is_none() {
+        let Decoded::Widened {
+            patterns: mut data,
+            range,
+        } = read(SampleMode::Widen)?
+        else {
+            unreachable!("SampleMode::Widen decodes 16-bit patterns")
+        };
+        let quantizer = crate::volume::Quantizer::new(range.min, range.max);
+        let signed = ty == SampleType::I8;
+        let table: Vec<u16> = (0..256u16)
+            .map(|p| {
+                let x = if signed {
+                    p as u8 as i8 as f64
+                } else {
+                    p as f64
+                };
+                quantizer.quantize(x)
+            })
+            .collect();
+        data.iter_mut().for_each(|p| *p = table[*p as usize & 0xff]);
+        return Ok(Streamed { data, range });
+    }
+    let Decoded::Range(range) = read(SampleMode::Range { affine })? else {
+        unreachable!("SampleMode::Range decodes a range")
+    };
+    let quantizer = crate::volume::Quantizer::new(range.min, range.max);
+    let Decoded::Quantized(data) = read(SampleMode::Quantize { affine, quantizer })? else {
+        unreachable!("SampleMode::Quantize decodes 16-bit data")
+    };
+    Ok(Streamed { data, range })
 }
 
 /// Loads a headerless raw file with explicitly given layout. `header_bytes` are skipped first.
@@ -610,18 +865,155 @@ mod tests {
     fn builder_handles_split_elements() {
         let vals: Vec<u16> = (0..1000u16).map(|i| i.wrapping_mul(977)).collect();
         let bytes: Vec<u8> = vals.iter().flat_map(|v| v.to_be_bytes()).collect();
-        let mut b = SampleBuilder::new(SampleType::U16, Endian::Big, vals.len());
+        let mut b = SampleBuilder::with_mode(SampleType::U16, Endian::Big, vals.len(), Keep);
         for c in bytes.chunks(7) {
             b.push(c);
         }
-        assert_eq!(b.finish(), Samples::U16(vals));
+        assert_eq!(kept(b), Samples::U16(vals));
+    }
+
+    use SampleMode::Keep;
+
+    fn kept(b: SampleBuilder) -> Samples {
+        match b.finish_decoded() {
+            Decoded::Samples(s) => s,
+            _ => panic!("SampleMode::Keep decodes samples"),
+        }
+    }
+
+    fn decode(
+        ty: SampleType,
+        e: Endian,
+        bytes: &[u8],
+        count: usize,
+        mode: SampleMode,
+        chunk: usize,
+    ) -> Decoded {
+        let mut b = SampleBuilder::with_mode(ty, e, count, mode);
+        for c in bytes.chunks(chunk) {
+            b.push(c);
+        }
+        b.finish_decoded()
+    }
+
+    /// The streaming passes (range, then quantization; chunks that split samples and flushes)
+    /// give exactly what keeping the samples and normalizing them gives, for every type, with
+    /// and without a rescale, NaN and infinities included.
+    #[test]
+    fn streaming_passes_equal_normalizing_kept_samples() {
+        let n = PASS_CHUNK * 2 + 777;
+        let values: Vec<f64> = (0..n)
+            .map(|i| ((i as f64 * 0.618_034).fract() * 300.0 - 100.0).round())
+            .collect();
+        for ty in [
+            SampleType::U8,
+            SampleType::I8,
+            SampleType::U16,
+            SampleType::I16,
+            SampleType::U32,
+            SampleType::I32,
+            SampleType::F32,
+            SampleType::F64,
+        ] {
+            let mut samples = Samples::from_f64(ty, values.clone());
+            if let Samples::F32(v) = &mut samples {
+                v[3] = f32::NAN;
+                v[5] = f32::INFINITY;
+            }
+            if let Samples::F64(v) = &mut samples {
+                v[7] = f64::NAN;
+                v[PASS_CHUNK + 1] = f64::NEG_INFINITY;
+            }
+            let bytes: Vec<u8> = (0..n)
+                .flat_map(|i| {
+                    let x = samples.get(i).unwrap_or(0.0);
+                    match ty {
+                        SampleType::U8 => vec![x as u8],
+                        SampleType::I8 => (x as i8).to_be_bytes().to_vec(),
+                        SampleType::U16 => (x as u16).to_be_bytes().to_vec(),
+                        SampleType::I16 => (x as i16).to_be_bytes().to_vec(),
+                        SampleType::U32 => (x as u32).to_be_bytes().to_vec(),
+                        SampleType::I32 => (x as i32).to_be_bytes().to_vec(),
+                        SampleType::F32 => (x as f32).to_be_bytes().to_vec(),
+                        SampleType::F64 => x.to_be_bytes().to_vec(),
+                    }
+                })
+                .collect();
+            for affine in [
+                None,
+                Some(Affine {
+                    slope: 0.37,
+                    inter: -12.5,
+                }),
+            ] {
+                let Decoded::Samples(kept) = decode(ty, Endian::Big, &bytes, n, Keep, 4093) else {
+                    panic!("kept samples")
+                };
+                let same = |a: Option<f64>, b: Option<f64>| {
+                    a == b || a.is_some_and(f64::is_nan) && b.is_some_and(f64::is_nan)
+                };
+                assert!((0..n).all(|i| same(kept.get(i), samples.get(i))), "{ty:?}");
+                let kept = match affine {
+                    Some(a) => Samples::F32(
+                        (0..n)
+                            .map(|i| a.apply(kept.get(i).unwrap_or(0.0)))
+                            .collect(),
+                    ),
+                    None => kept,
+                };
+                let raw = RawVolume {
+                    dims: [n as u32, 1, 1],
+                    spacing: [1.0; 3],
+                    samples: kept,
+                    units: String::new(),
+                    modality: String::new(),
+                    format: String::new(),
+                    warnings: vec![],
+                };
+                let expected = raw.clone().normalize("t");
+                // Chunks of another size for each pass (they split samples differently).
+                let mut chunk = 1 << 12;
+                let streamed = read_streamed(ty, affine, |mode| {
+                    chunk = chunk * 16 + 3;
+                    Ok(decode(ty, Endian::Big, &bytes, n, mode, chunk))
+                })
+                .expect("streamed");
+                let meta = RawVolume {
+                    samples: Samples::empty(ty),
+                    ..raw
+                };
+                let streamed = crate::volume::assemble(meta, streamed.data, streamed.range, "t");
+                assert_eq!(streamed.data, expected.data, "{ty:?} {affine:?}");
+                assert_eq!(
+                    (streamed.value_min, streamed.value_max, &streamed.warnings),
+                    (expected.value_min, expected.value_max, &expected.warnings),
+                    "{ty:?} {affine:?}"
+                );
+            }
+        }
     }
 
     #[test]
     fn builder_ignores_excess() {
-        let mut b = SampleBuilder::new(SampleType::I32, Endian::Little, 2);
+        let mut b = SampleBuilder::with_mode(SampleType::I32, Endian::Little, 2, Keep);
         b.push(&[1, 0, 0, 0, 2, 0, 0, 0, 3, 0, 0, 0]);
-        assert_eq!(b.finish(), Samples::I32(vec![1, 2]));
+        assert_eq!(kept(b), Samples::I32(vec![1, 2]));
+        for mode in [
+            SampleMode::Range { affine: None },
+            SampleMode::Quantize {
+                affine: None,
+                quantizer: crate::volume::Quantizer::new(1.0, 2.0),
+            },
+        ] {
+            let mut b = SampleBuilder::with_mode(SampleType::I32, Endian::Little, 2, mode);
+            b.push(&[1, 0, 0, 0, 2, 0, 0, 0, 3, 0, 0, 0]);
+            assert!(b.is_full());
+            match b.finish_decoded() {
+                Decoded::Range(r) => assert_eq!((r.min, r.max), (1.0, 2.0)),
+                Decoded::Quantized(q) => assert_eq!(q, vec![0, 65535]),
+                Decoded::Samples(_) | Decoded::Widened { .. } => panic!("not this mode"),
+            }
+        }
     }
 
     #[test]

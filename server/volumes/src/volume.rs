@@ -3,7 +3,7 @@
 use std::fmt;
 
 use crate::VolumeError;
-use crate::raw::{RawVolume, Samples};
+use crate::raw::{RawVolume, Samples, ValueRange};
 
 /// Number of histogram bins.
 pub const HISTOGRAM_BINS: usize = 256;
@@ -225,23 +225,39 @@ fn quantize_lut<T: Copy>(v: Vec<T>, lut: &[u16], idx: impl Fn(T) -> usize) -> Ve
     v.into_iter().map(|x| lut[idx(x)]).collect()
 }
 
-pub(crate) fn normalize(raw: RawVolume, name: &str) -> Volume {
-    let (min, max) = raw.min_max();
-    let mut warnings = raw.warnings;
-    let range = max - min;
-    let scale = if range > 0.0 && range.is_finite() {
-        65535.0 / range
-    } else {
-        0.0
-    };
-    let mut bad = 0usize;
-    let q = |x: f64| -> u16 {
-        if scale == 0.0 {
+/// The mapping of original values to 16 bits: `(x - min) / (max - min)` scaled to 0..=65535,
+/// rounded; a constant volume (or NaN) maps to 0.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct Quantizer {
+    min: f64,
+    scale: f64,
+}
+
+impl Quantizer {
+    pub(crate) fn new(min: f64, max: f64) -> Self {
+        let range = max - min;
+        let scale = if range > 0.0 && range.is_finite() {
+            65535.0 / range
+        } else {
+            0.0
+        };
+        Quantizer { min, scale }
+    }
+
+    pub(crate) fn quantize(self, x: f64) -> u16 {
+        if self.scale == 0.0 {
             0
         } else {
-            ((x - min) * scale).round().clamp(0.0, 65535.0) as u16
+            ((x - self.min) * self.scale).round().clamp(0.0, 65535.0) as u16
         }
-    };
+    }
+}
+
+pub(crate) fn normalize(raw: RawVolume, name: &str) -> Volume {
+    let (min, max) = raw.min_max();
+    let quantizer = Quantizer::new(min, max);
+    let q = |x: f64| quantizer.quantize(x);
+    let mut bad = 0usize;
     let data: Vec<u16> = match raw.samples {
         Samples::U8(v) => {
             let lut: Vec<u16> = (0..256).map(|i| q(i as f64)).collect();
@@ -280,22 +296,39 @@ pub(crate) fn normalize(raw: RawVolume, name: &str) -> Volume {
             })
             .collect(),
     };
-    if bad > 0 {
+    let range = ValueRange { min, max, nan: bad };
+    assemble(
+        RawVolume {
+            samples: Samples::U8(Vec::new()),
+            ..raw
+        },
+        data,
+        range,
+        name,
+    )
+}
+
+/// The volume of `meta` (a [`RawVolume`] whose samples were read in two streaming passes, so it
+/// holds none) from its 16-bit `data`, quantized against `range` by [`Quantizer`].
+pub(crate) fn assemble(meta: RawVolume, data: Vec<u16>, range: ValueRange, name: &str) -> Volume {
+    let mut warnings = meta.warnings;
+    if range.nan > 0 {
         warnings.push(format!(
-            "{bad} NaN samples were mapped to the minimum value {min}"
+            "{} NaN samples were mapped to the minimum value {}",
+            range.nan, range.min
         ));
     }
     let histogram = compute_histogram(&data);
     Volume {
         name: name.to_string(),
-        dims: raw.dims,
-        spacing: raw.spacing,
+        dims: meta.dims,
+        spacing: meta.spacing,
         data,
-        value_min: min,
-        value_max: max,
-        units: raw.units,
-        modality: raw.modality,
-        format: raw.format,
+        value_min: range.min,
+        value_max: range.max,
+        units: meta.units,
+        modality: meta.modality,
+        format: meta.format,
         histogram,
         warnings,
     }

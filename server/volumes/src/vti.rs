@@ -7,7 +7,8 @@ use std::path::Path;
 use flate2::bufread::ZlibDecoder;
 
 use crate::raw::{
-    RawVolume, SampleBuilder, SampleType, Samples, byte_count, check_dims, check_spacing,
+    Decoded, RawVolume, SampleBuilder, SampleMode, SampleType, Samples, Streamed, byte_count,
+    check_dims, check_spacing, read_streamed, reads_streamed,
 };
 use crate::{Endian, VolumeError};
 
@@ -258,9 +259,9 @@ fn decode_block(
     base: usize,
     l: &Layout,
     ty: SampleType,
-    count: usize,
     nbytes: u64,
-) -> Result<Samples, VolumeError> {
+    mut builder: SampleBuilder,
+) -> Result<Decoded, VolumeError> {
     let trunc = |what: &str| {
         VolumeError::format(
             path,
@@ -270,7 +271,6 @@ fn decode_block(
             ),
         )
     };
-    let mut builder = SampleBuilder::new(ty, l.endian, count);
     if !l.compressed {
         let declared =
             read_uint(b, base, l).ok_or_else(|| trunc("the array's byte-count header"))?;
@@ -288,7 +288,7 @@ fn decode_block(
             .and_then(|n| b.get(start..start.checked_add(n)?))
             .ok_or_else(|| trunc(&format!("{nbytes} bytes of array data at offset {start}")))?;
         builder.push(data);
-        return Ok(builder.finish());
+        return Ok(builder.finish_decoded());
     }
     let nblocks = read_uint(b, base, l).ok_or_else(|| trunc("the compression header"))?;
     let blocksize =
@@ -361,7 +361,30 @@ fn decode_block(
             ));
         }
     }
-    Ok(builder.finish())
+    Ok(builder.finish_decoded())
+}
+
+/// The samples of the array at `base` in `b`: kept, or with `streaming` (and samples that are
+/// not 16-bit) read straight to 16 bits ([`read_streamed`]).
+fn decode_data(
+    path: &Path,
+    b: &[u8],
+    base: usize,
+    l: &Layout,
+    (ty, count, nbytes): (SampleType, usize, u64),
+    streaming: bool,
+) -> Result<(Samples, Option<Streamed>), VolumeError> {
+    let decode = |mode| {
+        let builder = SampleBuilder::with_mode(ty, l.endian, count, mode);
+        decode_block(path, b, base, l, ty, nbytes, builder)
+    };
+    if streaming && reads_streamed(ty, false) {
+        return Ok((Samples::empty(ty), Some(read_streamed(ty, None, decode)?)));
+    }
+    let Decoded::Samples(samples) = decode(SampleMode::Keep)? else {
+        unreachable!("SampleMode::Keep decodes samples")
+    };
+    Ok((samples, None))
 }
 
 fn parse_ascii(
@@ -399,6 +422,15 @@ fn parse_ascii(
 
 /// Loads a `.vti` file.
 pub fn load_vti(path: &Path) -> Result<RawVolume, VolumeError> {
+    load_vti_with(path, false).map(|(raw, _)| raw)
+}
+
+/// [`load_vti`]; with `streaming`, binary samples that are not 16-bit are read straight to 16
+/// bits ([`read_streamed`]; the [`RawVolume`] then holds none).
+pub(crate) fn load_vti_with(
+    path: &Path,
+    streaming: bool,
+) -> Result<(RawVolume, Option<Streamed>), VolumeError> {
     let b = std::fs::read(path).map_err(|e| VolumeError::io(path, "reading the .vti file", e))?;
     let mut warnings = Vec::new();
 
@@ -578,7 +610,7 @@ pub fn load_vti(path: &Path) -> Result<RawVolume, VolumeError> {
     let count = dims.iter().map(|&d| d as usize).product::<usize>();
     let nbytes = byte_count(dims, ty);
     let fmt_s = arr.attr("format").unwrap_or("");
-    let samples = match fmt_s {
+    let (samples, streamed) = match fmt_s {
         "appended" => {
             let start = appended_start.ok_or_else(|| {
                 VolumeError::format(
@@ -615,7 +647,7 @@ pub fn load_vti(path: &Path) -> Result<RawVolume, VolumeError> {
                         format!("DataArray offset {off} lies beyond the end of the file"),
                     )
                 })?;
-            decode_block(path, &b, base, &layout, ty, count, nbytes)?
+            decode_data(path, &b, base, &layout, (ty, count, nbytes), streaming)?
         }
         "binary" | "ascii" => {
             let text_end = find(&b, b"</DataArray", arr.end)
@@ -625,10 +657,10 @@ pub fn load_vti(path: &Path) -> Result<RawVolume, VolumeError> {
                 })?;
             let text = &b[arr.end..text_end];
             if fmt_s == "ascii" {
-                parse_ascii(path, text, ty, count)?
+                (parse_ascii(path, text, ty, count)?, None)
             } else {
                 let bytes = base64_decode(path, text)?;
-                decode_block(path, &bytes, 0, &layout, ty, count, nbytes)?
+                decode_data(path, &bytes, 0, &layout, (ty, count, nbytes), streaming)?
             }
         }
         o => {
@@ -651,15 +683,18 @@ pub fn load_vti(path: &Path) -> Result<RawVolume, VolumeError> {
             ""
         }
     );
-    Ok(RawVolume {
-        dims,
-        spacing,
-        samples,
-        units: String::new(),
-        modality: String::new(),
-        format: fmt,
-        warnings,
-    })
+    Ok((
+        RawVolume {
+            dims,
+            spacing,
+            samples,
+            units: String::new(),
+            modality: String::new(),
+            format: fmt,
+            warnings,
+        },
+        streamed,
+    ))
 }
 
 #[cfg(test)]
