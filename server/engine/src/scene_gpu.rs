@@ -87,12 +87,25 @@ pub fn gpu_lights(lights: &[Light]) -> (Vec<GpuLight>, [f32; 3]) {
     (out, env)
 }
 
+/// Most march steps along the box's diagonal (a 2048³ volume, the usual 3D-texture limit,
+/// takes ~7100 at half a voxel).
+const MAX_STEPS_PER_DIAGONAL: f32 = 8192.0;
+
 /// Default march step: half the smallest voxel edge in world units.
 pub fn default_step(volume: &GpuVolume) -> f32 {
+    march_step(volume.extent, volume.dims)
+}
+
+/// Half the smallest voxel edge of a box of `extent` with `dims` voxels, but no less than
+/// [`MAX_STEPS_PER_DIAGONAL`] steps along the diagonal: a very uneven spacing (a thin slab of a
+/// few thick slices) would otherwise march the long axes at the thin axis's step, tens of
+/// thousands of steps a ray.
+pub fn march_step(extent: [f32; 3], dims: [u32; 3]) -> f32 {
     let voxel = (0..3)
-        .map(|k| volume.extent[k] / volume.dims[k] as f32)
+        .map(|k| extent[k] / dims[k].max(1) as f32)
         .fold(f32::INFINITY, f32::min);
-    0.5 * voxel
+    let diagonal = extent.iter().map(|e| e * e).sum::<f32>().sqrt();
+    (0.5 * voxel).max(diagonal / MAX_STEPS_PER_DIAGONAL)
 }
 
 impl SceneUniforms {
@@ -127,5 +140,33 @@ impl SceneUniforms {
             pad1: 0,
             pad2: 0,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::march_step;
+
+    #[test]
+    fn march_step_is_half_a_voxel() {
+        assert_eq!(march_step([1.0, 1.0, 1.0], [256, 256, 256]), 0.5 / 256.0);
+        // Anisotropic CT: the thinnest voxel edge sets the step.
+        let step = march_step([1.0, 1.0, 0.5], [512, 512, 100]);
+        assert_eq!(step, 0.5 / 512.0);
+    }
+
+    #[test]
+    fn a_thin_slab_is_not_marched_at_its_thin_axis_step() {
+        // 3 slices 0.0001 thick under a 1×1 face: half a slice would be 1.7e-5, 83 000 steps
+        // across the diagonal.
+        let extent = [1.0, 1.0, 1e-4];
+        let step = march_step(extent, [256, 256, 3]);
+        let diagonal = (2.0f32 + 1e-8).sqrt();
+        assert!(
+            (diagonal / step - 8192.0).abs() < 1.0,
+            "{}",
+            diagonal / step
+        );
+        assert!(step > 0.5 * 1e-4 / 3.0);
     }
 }
