@@ -19,7 +19,7 @@ use voxlight_protocol::{
 
 use crate::metrics::Metrics;
 use crate::render_service::{RenderedFrame, SessionEvents, SessionId};
-use crate::session::Reply;
+use crate::reply::Reply;
 
 /// Default time a session waits for a viewer to come back.
 pub const DEFAULT_GRACE_PERIOD: Duration = Duration::from_secs(120);

@@ -18,6 +18,7 @@ pub mod loadgen;
 pub mod metrics;
 pub mod offline;
 pub mod render_service;
+pub mod reply;
 pub mod routes;
 pub mod session;
 

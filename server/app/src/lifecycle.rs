@@ -17,7 +17,7 @@ use tokio::time::Instant;
 use voxlight_protocol::{ErrorCode, ServerMessage};
 
 use crate::AppState;
-use crate::session::Reply;
+use crate::reply::Reply;
 
 /// Default time a draining process keeps serving its sessions.
 pub const DEFAULT_DRAIN_TIMEOUT: Duration = Duration::from_secs(300);

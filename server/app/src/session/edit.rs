@@ -1,0 +1,314 @@
+//! A viewer's edits: checked (`validate_message`), then applied to the session under its lock.
+
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::time::Instant;
+
+use tokio::sync::oneshot;
+use voxlight_engine::camera::CameraBasis;
+use voxlight_engine::scene::{validate_lights, validate_params, validate_viewport};
+use voxlight_engine::{Change, Scene};
+use voxlight_protocol::{
+    ClientMessage, ErrorCode, MAX_FRAMES_IN_FLIGHT, RenderParams, ServerMessage, ViewerInfo,
+};
+
+use crate::AppState;
+use crate::hub::{SessionCore, SharedSession};
+use crate::render_service::Command;
+use crate::reply::Reply;
+
+use super::{MAX_ITERATIONS, ViewerLink};
+
+use super::join::{check_technique, check_viewport, load_dataset, loading_progress};
+
+/// Every check of a client message that needs no session state: ranges, finite numbers,
+/// list lengths. `handle_message` runs it before touching the session (so a refused message
+/// has no effect at all), `open_or_join` before anything else; what depends on the session or
+/// the GPU (the viewport's pixel budget, technique and dataset names) is checked where it is
+/// used. A message it accepts carries no number out of its documented range.
+pub fn validate_message(message: &ClientMessage) -> Result<(), Reply> {
+    match message {
+        ClientMessage::Hello {
+            viewport,
+            technique_options,
+            max_in_flight,
+            ..
+        } => {
+            if let Some(n) = max_in_flight
+                && !(1..=MAX_FRAMES_IN_FLIGHT).contains(n)
+            {
+                return Err(Reply::bad(format!(
+                    "max_in_flight must be in 1..={MAX_FRAMES_IN_FLIGHT}, got {n}"
+                )));
+            }
+            // Checked when joining too, where they are not used: a value out of range is a
+            // client bug either way.
+            if let Some(viewport) = viewport {
+                validate_viewport(viewport).map_err(Reply::bad)?;
+            }
+            match technique_options {
+                Some(options) => {
+                    voxlight_engine::technique_options::validate(options).map_err(Reply::bad)
+                }
+                None => Ok(()),
+            }
+        }
+        ClientMessage::Camera(camera) => CameraBasis::new(camera).map(|_| ()).map_err(Reply::bad),
+        ClientMessage::Tf(tf) => voxlight_engine::tf::validate(tf).map_err(Reply::bad),
+        ClientMessage::Lights { lights } => validate_lights(lights).map_err(Reply::bad),
+        ClientMessage::Viewport(viewport) => validate_viewport(viewport).map_err(Reply::bad),
+        ClientMessage::Params {
+            density_scale,
+            g,
+            exposure,
+        } => {
+            // Each parameter has its own range: the given ones are checked beside defaults.
+            let d = RenderParams::default();
+            validate_params(&RenderParams {
+                density_scale: density_scale.unwrap_or(d.density_scale),
+                g: g.unwrap_or(d.g),
+                exposure: exposure.unwrap_or(d.exposure),
+            })
+            .map_err(Reply::bad)
+        }
+        ClientMessage::Quality {
+            jpeg_quality,
+            iterations,
+        } => {
+            if let Some(q) = jpeg_quality
+                && !(1..=100).contains(q)
+            {
+                return Err(Reply::bad(format!(
+                    "jpeg_quality must be in 1..=100, got {q}"
+                )));
+            }
+            if let Some(n) = iterations
+                && !(1..=MAX_ITERATIONS).contains(n)
+            {
+                return Err(Reply::bad(format!(
+                    "iterations must be in 1..={MAX_ITERATIONS}, got {n}"
+                )));
+            }
+            Ok(())
+        }
+        ClientMessage::Technique {
+            options: Some(options),
+            ..
+        } => voxlight_engine::technique_options::validate(options).map_err(Reply::bad),
+        ClientMessage::Technique { options: None, .. }
+        | ClientMessage::Ack { .. }
+        | ClientMessage::Name { .. }
+        | ClientMessage::Dataset { .. } => Ok(()),
+    }
+}
+
+/// Applies one message. Session edits happen under the session lock, so every viewer sees
+/// them in the order they were applied (last writer wins).
+pub(super) async fn handle_message(
+    state: &Arc<AppState>,
+    session: &SharedSession,
+    viewer: &mut ViewerInfo,
+    message: ClientMessage,
+    link: &ViewerLink,
+) -> Result<(), Reply> {
+    let arrived = Instant::now();
+    match message {
+        ClientMessage::Hello { .. } => {
+            return Err(Reply::new(
+                ErrorCode::NotReady,
+                "this connection already said hello",
+            ));
+        }
+        ClientMessage::Name { name } => {
+            if let Some(renamed) = session.rename_viewer(viewer.id, &name) {
+                *viewer = renamed;
+                session.publish(ServerMessage::Viewers {
+                    viewers: session.viewers(),
+                });
+            }
+            return Ok(());
+        }
+        ClientMessage::Ack { seq } => {
+            link.acked.send_if_modified(|acked| {
+                let newer = seq > *acked;
+                if newer {
+                    *acked = seq;
+                }
+                newer
+            });
+            return Ok(());
+        }
+        _ => {}
+    }
+    validate_message(&message)?;
+    let mut core = session.core.lock().await;
+    let mut scene = core.scene.clone();
+    let (change, edit) = match message {
+        ClientMessage::Camera(camera) => {
+            scene.camera = camera;
+            (Change::Camera, ClientMessage::Camera(camera))
+        }
+        ClientMessage::Tf(tf) => {
+            let change = Change::tf(&scene.tf, &tf);
+            scene.tf = tf.clone();
+            (change, ClientMessage::Tf(tf))
+        }
+        ClientMessage::Lights { lights } => {
+            scene.lights = lights.clone();
+            (Change::Lights, ClientMessage::Lights { lights })
+        }
+        ClientMessage::Viewport(viewport) => {
+            check_viewport(state, &viewport)?;
+            if viewport == scene.viewport {
+                return Ok(());
+            }
+            scene.viewport = viewport;
+            (Change::Viewport, ClientMessage::Viewport(viewport))
+        }
+        ClientMessage::Params {
+            density_scale,
+            g,
+            exposure,
+        } => {
+            let params = &mut scene.params;
+            params.density_scale = density_scale.unwrap_or(params.density_scale);
+            params.g = g.unwrap_or(params.g);
+            params.exposure = exposure.unwrap_or(params.exposure);
+            validate_params(params).map_err(Reply::bad)?;
+            let edit = ClientMessage::Params {
+                density_scale: Some(params.density_scale),
+                g: Some(params.g),
+                exposure: Some(params.exposure),
+            };
+            (Change::Params, edit)
+        }
+        ClientMessage::Quality {
+            jpeg_quality: quality,
+            iterations,
+        } => {
+            if let Some(q) = quality {
+                link.jpeg_quality.store(q, Ordering::Relaxed);
+            }
+            let Some(n) = iterations else {
+                return Ok(());
+            };
+            scene.target_iterations = n;
+            let edit = ClientMessage::Quality {
+                jpeg_quality: None,
+                iterations: Some(n),
+            };
+            (Change::Iterations, edit)
+        }
+        ClientMessage::Technique { name, options } => {
+            check_technique(state, &name)?;
+            if let Some(options) = &options {
+                scene.technique_options = scene.technique_options.overlaid(options);
+                voxlight_engine::technique_options::validate(&scene.technique_options)
+                    .map_err(Reply::bad)?;
+            }
+            rebuild(
+                state,
+                session,
+                &mut core,
+                None,
+                name.clone(),
+                scene,
+                arrived,
+            )
+            .await?;
+            core.technique = name.clone();
+            session.publish(ServerMessage::Edited {
+                by: viewer.clone(),
+                version: core.version,
+                edit: Box::new(ClientMessage::Technique { name, options }),
+            });
+            return Ok(());
+        }
+        ClientMessage::Dataset { name } => {
+            let events = session.events.clone();
+            let progress = loading_progress(&name, move |message| {
+                let _ = events.send(Arc::new(message));
+            });
+            let volume = load_dataset(state, &name, progress).await?;
+            // A new dataset is a new scene: its own default TF and lights.
+            scene.tf = crate::datasets::default_tf(&volume);
+            scene.lights = crate::datasets::default_lights_for(&volume);
+            let technique = core.technique.clone();
+            let volume = Some(volume);
+            rebuild(state, session, &mut core, volume, technique, scene, arrived).await?;
+            core.dataset = name.clone();
+            let dataset = state
+                .catalog
+                .info(&name)
+                .ok_or_else(|| Reply::new(ErrorCode::Internal, "dataset vanished"))?;
+            session.publish(ServerMessage::DatasetLoaded {
+                dataset,
+                state: core.state(link.jpeg_quality.load(Ordering::Relaxed)),
+                by: Some(viewer.clone()),
+            });
+            return Ok(());
+        }
+        ClientMessage::Hello { .. } | ClientMessage::Ack { .. } | ClientMessage::Name { .. } => {
+            return Ok(());
+        }
+    };
+    core.scene = scene.clone();
+    bump_version(session, &mut core, arrived);
+    state
+        .render
+        .send(Command::Edit {
+            id: session.render_id,
+            scene,
+            changes: vec![change],
+            version: core.version,
+        })
+        .await
+        .map_err(|e| Reply::new(ErrorCode::Gpu, e.to_string()))?;
+    session.publish(ServerMessage::Edited {
+        by: viewer.clone(),
+        version: core.version,
+        edit: Box::new(edit),
+    });
+    Ok(())
+}
+
+/// Counts an edit: the next scene version, remembered with its arrival time unless an older
+/// edit is still waiting for its frame.
+fn bump_version(session: &SharedSession, core: &mut SessionCore, arrived: Instant) {
+    core.version += 1;
+    if let Ok(mut pending) = session.edit_clock.lock() {
+        pending.get_or_insert((core.version, arrived));
+    }
+}
+
+/// Swaps the session's volume and/or technique on the render thread; the version advances
+/// only when that worked.
+async fn rebuild(
+    state: &Arc<AppState>,
+    session: &SharedSession,
+    core: &mut SessionCore,
+    volume: Option<Arc<voxlight_volumes::Volume>>,
+    technique: String,
+    scene: Scene,
+    arrived: Instant,
+) -> Result<(), Reply> {
+    let (reply, done) = oneshot::channel();
+    state
+        .render
+        .send(Command::Rebuild {
+            id: session.render_id,
+            volume,
+            technique,
+            scene: scene.clone(),
+            version: core.version + 1,
+            reply,
+        })
+        .await
+        .map_err(|e| Reply::new(ErrorCode::Gpu, e.to_string()))?;
+    done.await
+        .map_err(|_| Reply::new(ErrorCode::Internal, "render thread dropped the request"))?
+        .map_err(|e| Reply::new(crate::render_service::error_code(&e), e.to_string()))?;
+    core.scene = scene;
+    bump_version(session, core, arrived);
+    Ok(())
+}
