@@ -3,7 +3,7 @@
 use std::fmt;
 
 use crate::VolumeError;
-use crate::raw::{RawVolume, Samples, ValueRange};
+use crate::raw::{Quantizer, RawVolume, Samples, ValueRange};
 
 /// Number of histogram bins.
 pub const HISTOGRAM_BINS: usize = 256;
@@ -225,31 +225,10 @@ fn quantize_lut<T: Copy>(v: Vec<T>, lut: &[u16], idx: impl Fn(T) -> usize) -> Ve
     v.into_iter().map(|x| lut[idx(x)]).collect()
 }
 
-/// The mapping of original values to 16 bits: `(x - min) / (max - min)` scaled to 0..=65535,
-/// rounded; a constant volume (or NaN) maps to 0.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub(crate) struct Quantizer {
-    min: f64,
-    scale: f64,
-}
-
-impl Quantizer {
-    pub(crate) fn new(min: f64, max: f64) -> Self {
-        let range = max - min;
-        let scale = if range > 0.0 && range.is_finite() {
-            65535.0 / range
-        } else {
-            0.0
-        };
-        Quantizer { min, scale }
-    }
-
-    pub(crate) fn quantize(self, x: f64) -> u16 {
-        if self.scale == 0.0 {
-            0
-        } else {
-            ((x - self.min) * self.scale).round().clamp(0.0, 65535.0) as u16
-        }
+impl RawVolume {
+    /// Normalizes to a [`Volume`] (see [`Volume`] for the mapping).
+    pub fn normalize(self, name: &str) -> Volume {
+        normalize(self, name)
     }
 }
 
@@ -423,5 +402,123 @@ mod tests {
         let tiny = v.downsampled(0);
         assert_eq!(tiny.dims, [1, 1, 1]);
         assert!(v.raw_value(8, 0, 0).is_nan());
+    }
+
+    use crate::Endian;
+    use crate::raw::{
+        Affine, Decoded, PASS_CHUNK, SampleBuilder, SampleMode, SampleType, read_streamed,
+    };
+    use SampleMode::Keep;
+
+    fn decode(
+        ty: SampleType,
+        e: Endian,
+        bytes: &[u8],
+        count: usize,
+        mode: SampleMode,
+        chunk: usize,
+    ) -> Decoded {
+        let mut b = SampleBuilder::with_mode(ty, e, count, mode);
+        for c in bytes.chunks(chunk) {
+            b.push(c);
+        }
+        b.finish_decoded()
+    }
+
+    /// The streaming passes (range, then quantization; chunks that split samples and flushes)
+    /// give exactly what keeping the samples and normalizing them gives, for every type, with
+    /// and without a rescale, NaN and infinities included.
+    #[test]
+    fn streaming_passes_equal_normalizing_kept_samples() {
+        let n = PASS_CHUNK * 2 + 777;
+        let values: Vec<f64> = (0..n)
+            .map(|i| ((i as f64 * 0.618_034).fract() * 300.0 - 100.0).round())
+            .collect();
+        for ty in [
+            SampleType::U8,
+            SampleType::I8,
+            SampleType::U16,
+            SampleType::I16,
+            SampleType::U32,
+            SampleType::I32,
+            SampleType::F32,
+            SampleType::F64,
+        ] {
+            let mut samples = Samples::from_f64(ty, values.clone());
+            if let Samples::F32(v) = &mut samples {
+                v[3] = f32::NAN;
+                v[5] = f32::INFINITY;
+            }
+            if let Samples::F64(v) = &mut samples {
+                v[7] = f64::NAN;
+                v[PASS_CHUNK + 1] = f64::NEG_INFINITY;
+            }
+            let bytes: Vec<u8> = (0..n)
+                .flat_map(|i| {
+                    let x = samples.get(i).unwrap_or(0.0);
+                    match ty {
+                        SampleType::U8 => vec![x as u8],
+                        SampleType::I8 => (x as i8).to_be_bytes().to_vec(),
+                        SampleType::U16 => (x as u16).to_be_bytes().to_vec(),
+                        SampleType::I16 => (x as i16).to_be_bytes().to_vec(),
+                        SampleType::U32 => (x as u32).to_be_bytes().to_vec(),
+                        SampleType::I32 => (x as i32).to_be_bytes().to_vec(),
+                        SampleType::F32 => (x as f32).to_be_bytes().to_vec(),
+                        SampleType::F64 => x.to_be_bytes().to_vec(),
+                    }
+                })
+                .collect();
+            for affine in [
+                None,
+                Some(Affine {
+                    slope: 0.37,
+                    inter: -12.5,
+                }),
+            ] {
+                let Decoded::Samples(kept) = decode(ty, Endian::Big, &bytes, n, Keep, 4093) else {
+                    panic!("kept samples")
+                };
+                let same = |a: Option<f64>, b: Option<f64>| {
+                    a == b || a.is_some_and(f64::is_nan) && b.is_some_and(f64::is_nan)
+                };
+                assert!((0..n).all(|i| same(kept.get(i), samples.get(i))), "{ty:?}");
+                let kept = match affine {
+                    Some(a) => Samples::F32(
+                        (0..n)
+                            .map(|i| a.apply(kept.get(i).unwrap_or(0.0)))
+                            .collect(),
+                    ),
+                    None => kept,
+                };
+                let raw = RawVolume {
+                    dims: [n as u32, 1, 1],
+                    spacing: [1.0; 3],
+                    samples: kept,
+                    units: String::new(),
+                    modality: String::new(),
+                    format: String::new(),
+                    warnings: vec![],
+                };
+                let expected = raw.clone().normalize("t");
+                // Chunks of another size for each pass (they split samples differently).
+                let mut chunk = 1 << 12;
+                let streamed = read_streamed(ty, affine, |mode| {
+                    chunk = chunk * 16 + 3;
+                    Ok(decode(ty, Endian::Big, &bytes, n, mode, chunk))
+                })
+                .expect("streamed");
+                let meta = RawVolume {
+                    samples: Samples::empty(ty),
+                    ..raw
+                };
+                let streamed = assemble(meta, streamed.data, streamed.range, "t");
+                assert_eq!(streamed.data, expected.data, "{ty:?} {affine:?}");
+                assert_eq!(
+                    (streamed.value_min, streamed.value_max, &streamed.warnings),
+                    (expected.value_min, expected.value_max, &expected.warnings),
+                    "{ty:?} {affine:?}"
+                );
+            }
+        }
     }
 }
