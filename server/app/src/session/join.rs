@@ -20,8 +20,8 @@ use crate::reply::Reply;
 
 use super::edit::validate_message;
 use super::{
-    CLOSE_LINGER, DEFAULT_ITERATIONS, DEFAULT_JPEG_QUALITY, HELLO_TIMEOUT, Sink, Stream,
-    error_message, parse, text, transport_close,
+    CLOSE_LINGER, DEFAULT_ITERATIONS, DEFAULT_JPEG_QUALITY, HELLO_TIMEOUT, Sink, Stream, parse,
+    text, transport_close,
 };
 
 static NEXT_SESSION: AtomicU64 = AtomicU64::new(1);
@@ -49,7 +49,7 @@ pub(super) async fn wait_for_hello(
             Err(_) => {
                 let reply = Reply::new(ErrorCode::NotReady, "no hello within 30 s; closing");
                 metrics.error_sent(reply.code);
-                let _ = sink.send(text(&error_message(reply))).await;
+                let _ = sink.send(text(&ServerMessage::from(reply))).await;
                 return None;
             }
         };
@@ -63,7 +63,7 @@ pub(super) async fn wait_for_hello(
             Err(reply) => reply,
         };
         metrics.error_sent(reply.code);
-        if sink.send(text(&error_message(reply))).await.is_err() {
+        if sink.send(text(&ServerMessage::from(reply))).await.is_err() {
             return None;
         }
     }

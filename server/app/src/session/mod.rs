@@ -66,13 +66,6 @@ fn text(message: &ServerMessage) -> Message {
     ))
 }
 
-fn error_message(reply: Reply) -> ServerMessage {
-    ServerMessage::Error {
-        code: reply.code,
-        message: reply.message,
-    }
-}
-
 /// Parses one incoming WebSocket message. `Ok(None)`: nothing to do (ping, pong).
 fn parse(message: Message) -> Result<Option<ClientMessage>, Reply> {
     match message {
@@ -161,7 +154,7 @@ pub async fn handle_socket(socket: WebSocket, state: Arc<AppState>) {
         Ok(viewer) => viewer,
         Err(reply) => {
             state.metrics.error_sent(reply.code);
-            let _ = sink.send(text(&error_message(reply))).await;
+            let _ = sink.send(text(&ServerMessage::from(reply))).await;
             let _ = sink.close().await;
             return;
         }
@@ -333,7 +326,7 @@ async fn read_loop(
                         "more than {MAX_MESSAGES_PER_SECOND} messages a second; messages are being dropped"
                     ),
                 );
-                if outbox.send(error_message(reply)).await.is_err() {
+                if outbox.send(ServerMessage::from(reply)).await.is_err() {
                     return;
                 }
             }
@@ -346,7 +339,7 @@ async fn read_loop(
         };
         if let Err(reply) = result {
             tracing::debug!(session = session.render_id, viewer = viewer.id, code = ?reply.code, "client error");
-            if outbox.send(error_message(reply)).await.is_err() {
+            if outbox.send(ServerMessage::from(reply)).await.is_err() {
                 return;
             }
         }
