@@ -574,6 +574,8 @@ impl SampleBuilder {
     }
 
     /// Passes the samples held so far on to the range or the quantization (streaming modes).
+    // `x as f64` is the identity in the macro's f64 arm.
+    #[allow(clippy::unnecessary_cast)]
     fn flush(&mut self) {
         let n = self.samples.len();
         let (affine, quantizer) = match self.mode {
