@@ -132,7 +132,7 @@ pub enum Command {
     Edit {
         id: SessionId,
         scene: Scene,
-        changes: Vec<Change>,
+        change: Change,
         version: u64,
     },
     /// Replace volume and/or technique: rebuilds the session's renderer.
@@ -489,10 +489,10 @@ impl RenderThread {
             Command::Edit {
                 id,
                 scene,
-                changes,
+                change,
                 version,
             } => {
-                if changes.contains(&Change::Viewport)
+                if change == Change::Viewport
                     && let Err(e) = self.check_memory(Some(id), &scene, None)
                 {
                     if let Some(session) = self.sessions.get(&id) {
@@ -510,18 +510,18 @@ impl RenderThread {
                 session.fresh_edit = true;
                 session.technique_fresh = true;
                 let interactive = self.interaction.enabled;
-                for change in &changes {
-                    let applied = if interactive {
-                        session.renderer.defer(&self.engine, &session.scene, change)
-                    } else {
-                        session.renderer.apply(&self.engine, &session.scene, change)
-                    };
-                    if let Err(e) = applied {
-                        session.failed = true;
-                        session.report(&e);
-                        break;
-                    }
-                    session.failed = false;
+                let applied = if interactive {
+                    session
+                        .renderer
+                        .defer(&self.engine, &session.scene, &change)
+                } else {
+                    session
+                        .renderer
+                        .apply(&self.engine, &session.scene, &change)
+                };
+                session.failed = applied.is_err();
+                if let Err(e) = applied {
+                    session.report(&e);
                 }
                 self.publish_memory();
             }
@@ -815,7 +815,7 @@ mod tests {
         let edit = |id| Command::Edit {
             id,
             scene: Scene::default(),
-            changes: vec![Change::Camera],
+            change: Change::Camera,
             version: 1,
         };
         let (sender, mut receiver) = mpsc::channel(COMMAND_QUEUE);

@@ -141,64 +141,18 @@ pub(super) async fn handle_message(
         _ => {}
     }
     validate_message(&message)?;
+    // What depends on this GPU or only on this viewer, before the session is touched.
+    match &message {
+        ClientMessage::Viewport(viewport) => check_viewport(state, viewport)?,
+        ClientMessage::Quality {
+            jpeg_quality: Some(q),
+            ..
+        } => link.jpeg_quality.store(*q, Ordering::Relaxed),
+        _ => {}
+    }
     let mut core = session.core.lock().await;
     let mut scene = core.scene.clone();
-    let (change, edit) = match message {
-        ClientMessage::Camera(camera) => {
-            scene.camera = camera;
-            (Change::Camera, ClientMessage::Camera(camera))
-        }
-        ClientMessage::Tf(tf) => {
-            let change = Change::tf(&scene.tf, &tf);
-            scene.tf = tf.clone();
-            (change, ClientMessage::Tf(tf))
-        }
-        ClientMessage::Lights { lights } => {
-            scene.lights = lights.clone();
-            (Change::Lights, ClientMessage::Lights { lights })
-        }
-        ClientMessage::Viewport(viewport) => {
-            check_viewport(state, &viewport)?;
-            if viewport == scene.viewport {
-                return Ok(());
-            }
-            scene.viewport = viewport;
-            (Change::Viewport, ClientMessage::Viewport(viewport))
-        }
-        ClientMessage::Params {
-            density_scale,
-            g,
-            exposure,
-        } => {
-            let params = &mut scene.params;
-            params.density_scale = density_scale.unwrap_or(params.density_scale);
-            params.g = g.unwrap_or(params.g);
-            params.exposure = exposure.unwrap_or(params.exposure);
-            validate_params(params).map_err(Reply::bad)?;
-            let edit = ClientMessage::Params {
-                density_scale: Some(params.density_scale),
-                g: Some(params.g),
-                exposure: Some(params.exposure),
-            };
-            (Change::Params, edit)
-        }
-        ClientMessage::Quality {
-            jpeg_quality: quality,
-            iterations,
-        } => {
-            if let Some(q) = quality {
-                link.jpeg_quality.store(q, Ordering::Relaxed);
-            }
-            let Some(n) = iterations else {
-                return Ok(());
-            };
-            scene.target_iterations = n;
-            let edit = ClientMessage::Quality {
-                jpeg_quality: None,
-                iterations: Some(n),
-            };
-            (Change::Iterations, edit)
-        }
+    match message {
         ClientMessage::Technique { name, options } => {
             check_technique(state, &name)?;
             if let Some(options) = &options {
@@ -222,7 +176,6 @@ pub(super) async fn handle_message(
                 version: core.version,
                 edit: Box::new(ClientMessage::Technique { name, options }),
             });
-            return Ok(());
         }
         ClientMessage::Dataset { name } => {
             let events = session.events.clone();
@@ -246,30 +199,104 @@ pub(super) async fn handle_message(
                 state: core.state(link.jpeg_quality.load(Ordering::Relaxed)),
                 by: Some(viewer.clone()),
             });
-            return Ok(());
         }
-        ClientMessage::Hello { .. } | ClientMessage::Ack { .. } | ClientMessage::Name { .. } => {
-            return Ok(());
+        message => {
+            let Some((change, edit)) = apply(message, &mut scene)? else {
+                return Ok(());
+            };
+            core.scene = scene.clone();
+            bump_version(session, &mut core, arrived);
+            state
+                .render
+                .send(Command::Edit {
+                    id: session.render_id,
+                    scene,
+                    change,
+                    version: core.version,
+                })
+                .await
+                .map_err(|e| Reply::new(ErrorCode::Gpu, e.to_string()))?;
+            session.publish(ServerMessage::Edited {
+                by: viewer.clone(),
+                version: core.version,
+                edit: Box::new(edit),
+            });
         }
-    };
-    core.scene = scene.clone();
-    bump_version(session, &mut core, arrived);
-    state
-        .render
-        .send(Command::Edit {
-            id: session.render_id,
-            scene,
-            changes: vec![change],
-            version: core.version,
-        })
-        .await
-        .map_err(|e| Reply::new(ErrorCode::Gpu, e.to_string()))?;
-    session.publish(ServerMessage::Edited {
-        by: viewer.clone(),
-        version: core.version,
-        edit: Box::new(edit),
-    });
+    }
     Ok(())
+}
+
+/// Applies a scene edit (a message [`validate_message`] accepted) to `scene`: what it changes
+/// for the renderer and the message every viewer is told. `Ok(None)`: nothing to render again
+/// (the viewport the scene has, a `quality` without `iterations`). A refused message leaves
+/// `scene` as it was. Messages that are not scene edits (`hello`, `ack`, `name`, `technique`,
+/// `dataset`: they need the session or the GPU) are refused.
+pub fn apply(
+    message: ClientMessage,
+    scene: &mut Scene,
+) -> Result<Option<(Change, ClientMessage)>, Reply> {
+    Ok(Some(match message {
+        ClientMessage::Camera(camera) => {
+            scene.camera = camera;
+            (Change::Camera, ClientMessage::Camera(camera))
+        }
+        ClientMessage::Tf(tf) => {
+            let change = Change::tf(&scene.tf, &tf);
+            scene.tf = tf.clone();
+            (change, ClientMessage::Tf(tf))
+        }
+        ClientMessage::Lights { lights } => {
+            scene.lights = lights.clone();
+            (Change::Lights, ClientMessage::Lights { lights })
+        }
+        ClientMessage::Viewport(viewport) => {
+            if viewport == scene.viewport {
+                return Ok(None);
+            }
+            scene.viewport = viewport;
+            (Change::Viewport, ClientMessage::Viewport(viewport))
+        }
+        ClientMessage::Params {
+            density_scale,
+            g,
+            exposure,
+        } => {
+            let params = RenderParams {
+                density_scale: density_scale.unwrap_or(scene.params.density_scale),
+                g: g.unwrap_or(scene.params.g),
+                exposure: exposure.unwrap_or(scene.params.exposure),
+            };
+            validate_params(&params).map_err(Reply::bad)?;
+            scene.params = params;
+            let edit = ClientMessage::Params {
+                density_scale: Some(params.density_scale),
+                g: Some(params.g),
+                exposure: Some(params.exposure),
+            };
+            (Change::Params, edit)
+        }
+        ClientMessage::Quality { iterations, .. } => {
+            let Some(n) = iterations else {
+                return Ok(None);
+            };
+            scene.target_iterations = n;
+            let edit = ClientMessage::Quality {
+                jpeg_quality: None,
+                iterations: Some(n),
+            };
+            (Change::Iterations, edit)
+        }
+        ClientMessage::Hello { .. }
+        | ClientMessage::Ack { .. }
+        | ClientMessage::Name { .. }
+        | ClientMessage::Technique { .. }
+        | ClientMessage::Dataset { .. } => {
+            return Err(Reply::new(
+                ErrorCode::Internal,
+                "not a scene edit: handled with the session",
+            ));
+        }
+    }))
 }
 
 /// Counts an edit: the next scene version, remembered with its arrival time unless an older
@@ -311,4 +338,166 @@ async fn rebuild(
     core.scene = scene;
     bump_version(session, core, arrived);
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use voxlight_protocol::{Camera, Light, TfPoint, TransferFunction, Viewport};
+
+    use super::*;
+
+    fn scene() -> Scene {
+        Scene::default()
+    }
+
+    #[test]
+    fn a_camera_edit_moves_the_camera_and_is_echoed() {
+        let mut s = scene();
+        let camera = Camera {
+            fov_deg: 45.0,
+            ..s.camera
+        };
+        let (change, echo) = apply(ClientMessage::Camera(camera), &mut s)
+            .expect("accepted")
+            .expect("an edit");
+        assert_eq!(change, Change::Camera);
+        assert_eq!(s.camera, camera);
+        assert!(matches!(echo, ClientMessage::Camera(c) if c == camera));
+    }
+
+    #[test]
+    fn a_tf_edit_is_classified_against_the_scene_before_it() {
+        let mut s = scene();
+        let before = s.tf.clone();
+        let after = TransferFunction {
+            points: vec![
+                TfPoint {
+                    value: 0.2,
+                    color: [1.0, 0.5, 0.2],
+                    opacity: 0.0,
+                },
+                TfPoint {
+                    value: 0.8,
+                    color: [1.0, 1.0, 1.0],
+                    opacity: 0.7,
+                },
+            ],
+        };
+        assert_ne!(before, after);
+        let (change, _) = apply(ClientMessage::Tf(after.clone()), &mut s)
+            .expect("accepted")
+            .expect("an edit");
+        let Change::Tf { old, .. } = &change else {
+            panic!("a TF change: {change:?}")
+        };
+        assert_eq!(old, &before);
+        assert_eq!(change, Change::tf(&before, &after));
+        assert_eq!(s.tf, after);
+    }
+
+    #[test]
+    fn the_viewport_the_scene_has_changes_nothing() {
+        let mut s = scene();
+        let same = s.viewport;
+        assert!(
+            apply(ClientMessage::Viewport(same), &mut s)
+                .expect("accepted")
+                .is_none()
+        );
+        let wider = Viewport {
+            width: same.width + 16,
+            ..same
+        };
+        let (change, _) = apply(ClientMessage::Viewport(wider), &mut s)
+            .expect("accepted")
+            .expect("an edit");
+        assert_eq!(change, Change::Viewport);
+        assert_eq!(s.viewport, wider);
+    }
+
+    #[test]
+    fn params_given_in_part_keep_the_rest_and_echo_all() {
+        let mut s = scene();
+        let before = s.params;
+        let message = ClientMessage::Params {
+            density_scale: None,
+            g: Some(0.5),
+            exposure: None,
+        };
+        let (change, echo) = apply(message, &mut s).expect("accepted").expect("an edit");
+        assert_eq!(change, Change::Params);
+        assert_eq!(s.params.g, 0.5);
+        assert_eq!(s.params.density_scale, before.density_scale);
+        assert!(matches!(
+            echo,
+            ClientMessage::Params { density_scale: Some(d), g: Some(g), exposure: Some(_) }
+                if d == before.density_scale && g == 0.5
+        ));
+    }
+
+    #[test]
+    fn a_refused_edit_leaves_the_scene_as_it_was() {
+        let mut s = scene();
+        let before = s.clone();
+        let message = ClientMessage::Params {
+            density_scale: Some(2.0),
+            g: Some(1.5),
+            exposure: None,
+        };
+        let reply = apply(message, &mut s).expect_err("g out of range");
+        assert_eq!(reply.code, ErrorCode::BadValue);
+        assert_eq!(s, before);
+    }
+
+    #[test]
+    fn quality_without_iterations_renders_nothing_again() {
+        let mut s = scene();
+        let only_jpeg = ClientMessage::Quality {
+            jpeg_quality: Some(50),
+            iterations: None,
+        };
+        assert!(apply(only_jpeg, &mut s).expect("accepted").is_none());
+        let more = ClientMessage::Quality {
+            jpeg_quality: Some(50),
+            iterations: Some(512),
+        };
+        let (change, echo) = apply(more, &mut s).expect("accepted").expect("an edit");
+        assert_eq!(change, Change::Iterations);
+        assert_eq!(s.target_iterations, 512);
+        // The JPEG quality is the viewer's own: not told to the others.
+        assert!(matches!(
+            echo,
+            ClientMessage::Quality {
+                jpeg_quality: None,
+                iterations: Some(512)
+            }
+        ));
+    }
+
+    #[test]
+    fn lights_are_replaced_whole() {
+        let mut s = scene();
+        let lights: Vec<Light> = Vec::new();
+        let (change, _) = apply(ClientMessage::Lights { lights }, &mut s)
+            .expect("accepted")
+            .expect("an edit");
+        assert_eq!(change, Change::Lights);
+        assert!(s.lights.is_empty());
+    }
+
+    #[test]
+    fn messages_that_need_the_session_are_not_scene_edits() {
+        let mut s = scene();
+        let before = s.clone();
+        for message in [
+            ClientMessage::Ack { seq: 3 },
+            ClientMessage::Name { name: "x".into() },
+            ClientMessage::Dataset {
+                name: "bonsai".into(),
+            },
+        ] {
+            assert!(apply(message, &mut s).is_err());
+        }
+        assert_eq!(s, before);
+    }
 }
