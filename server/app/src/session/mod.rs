@@ -32,7 +32,7 @@ pub use crate::reply::Reply;
 use edit::handle_message;
 pub use edit::validate_message;
 use join::{Viewer, open_or_join, wait_for_hello};
-use writer::{send, write_loop};
+use writer::{WriterEnv, send, write_loop};
 
 /// Range of `quality.iterations`.
 pub const MAX_ITERATIONS: u32 = 65536;
@@ -197,7 +197,7 @@ pub async fn handle_socket(socket: WebSocket, state: Arc<AppState>) {
         session.clone(),
         events,
         link.clone(),
-        state.clone(),
+        WriterEnv::of(&state),
     ));
     read_loop(&state, &session, info.clone(), stream, outbox, &link).await;
     leave(&state, &session, &info);
