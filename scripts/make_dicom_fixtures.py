@@ -37,6 +37,9 @@ J2K_LOSSY_RATE = 10
 ENHANCED_OFFSETS = (0, 7, 300)
 # "bright" variant: stored values + BRIGHT_SHIFT, clipped at 4095 (HU above 1000 clip).
 BRIGHT_SHIFT = 2095
+# *-fragmented variants: dcmcjpeg's fragment size limit in kB (+fs), so that each frame's JPEG
+# stream (~120 kB at 12 bits) spans several fragments.
+FRAGMENT_KB = 16
 
 TOOLS = {
     "dcmcrle": "dcmtk (apt-get install dcmtk)",
@@ -279,7 +282,21 @@ VARIANTS = {
     # Lossy codecs.
     "jpeg-baseline": ("native", dcmtk("dcmcjpeg", "+eb")),
     "jpeg-extended-8bit": ("native-8bit", dcmtk("dcmcjpeg", "+ee")),
-    "jpeg-extended-12bit": ("native", dcmtk("dcmcjpeg", "+ee")),
+    # 12-bit lossy JPEG (process 4, SOF1 with 12-bit precision): dcmcjpeg codes the 12 bits
+    # stored at 12 bits (+bt says so explicitly; +ba would choose the same) at its default IJG
+    # quality 90. For CT it writes the values shifted into 0..4095 with a new RescaleIntercept
+    # (-2023 here, slope 1), so HU stay HU.
+    "jpeg-extended-12bit": ("native", dcmtk("dcmcjpeg", "+ee", "+bt")),
+    # The same streams cut into FRAGMENT_KB fragments (one frame over several fragments), and an
+    # enhanced multi-frame file so cut (frames found through the basic offset table).
+    "jpeg-extended-12bit-fragmented": (
+        "native",
+        dcmtk("dcmcjpeg", "+ee", "+bt", "+fs", FRAGMENT_KB),
+    ),
+    "enhanced-jpeg-extended-12bit": (
+        "enhanced",
+        dcmtk("dcmcjpeg", "+ee", "+bt", "+fs", FRAGMENT_KB),
+    ),
     "jpegls-near": ("native", dcmtk("dcmcjpls", "+en", "+md", JPEGLS_NEAR)),
     "j2k-lossy": ("explicit", gdcm("--j2k", "--lossy", "-r", J2K_LOSSY_RATE)),
     # GDCM codes 12-bit data as 16-bit JPEG 2000: lossy values can exceed 4095.
@@ -287,6 +304,7 @@ VARIANTS = {
     # The lossy files decoded back to native by the encoders' own decoders (the reference).
     "jpeg-baseline-dcmtk-decoded": ("jpeg-baseline", dcmtk("dcmdjpeg")),
     "jpeg-extended-8bit-dcmtk-decoded": ("jpeg-extended-8bit", dcmtk("dcmdjpeg")),
+    "jpeg-extended-12bit-dcmtk-decoded": ("jpeg-extended-12bit", dcmtk("dcmdjpeg")),
     "jpegls-near-dcmtk-decoded": ("jpegls-near", dcmtk("dcmdjpls")),
     "j2k-lossy-gdcm-decoded": ("j2k-lossy", gdcm("--raw")),
     "bright-j2k-lossy-gdcm-decoded": ("bright-j2k-lossy", gdcm("--raw")),

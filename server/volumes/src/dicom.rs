@@ -1,8 +1,9 @@
 //! DICOM loader, built on `dicom-object`: series of single-frame files and (enhanced)
 //! multi-frame files, uncompressed or compressed with any codec dicom-rs's transfer syntax
 //! registry decodes here (RLE Lossless, JPEG baseline / 8-bit extended / lossless, JPEG-LS,
-//! JPEG 2000). Every frame becomes one slice; slices are grouped by SeriesInstanceUID and sorted
-//! along the slice normal.
+//! JPEG 2000), and 12-bit lossy JPEG (extended) with libjpeg-turbo ([`crate::jpeg12`]). Every
+//! frame becomes one slice; slices are grouped by SeriesInstanceUID and sorted along the slice
+//! normal.
 //!
 //! Privacy: warnings and format strings name files and geometry only, never patient data.
 
@@ -22,7 +23,7 @@ use dicom_object::{DefaultDicomObject, InMemDicomObject, OpenFileOptions};
 use dicom_transfer_syntax_registry::TransferSyntaxRegistry;
 
 use crate::raw::{RawVolume, Samples, check_dims, check_spacing};
-use crate::{MAX_VOXELS, VolumeError};
+use crate::{MAX_VOXELS, VolumeError, jpeg12};
 
 /// Most individual problems listed in one warning before it says "and N more".
 const MAX_LISTED: usize = 5;
@@ -76,6 +77,16 @@ fn ts_label(uid: &str) -> String {
     }
 }
 
+/// Whether this slice's frames go to libjpeg-turbo ([`jpeg12`]) rather than dicom-rs: lossy JPEG
+/// with more than 8 bits stored, i.e. a 12-bit stream (PS3.5 Table 8.2.1-1), which jpeg-decoder,
+/// dicom-rs's JPEG codec, cannot decode (it reads DCT-based JPEG at 8-bit precision only). JPEG
+/// Baseline is 8-bit by definition, but a file marked so with 12 bits stored may hold a 12-bit
+/// stream all the same. A stream that turns out to be 8-bit still goes to dicom-rs, as do files
+/// whose BitsStored exceeds an 8-bit BitsAllocated (read as 8 bits stored).
+fn uses_jpeg12(s: &SliceInfo) -> bool {
+    (s.ts == JPEG_EXTENDED || s.ts == JPEG_BASELINE) && s.bits_stored > 8 && s.bits_alloc == 16
+}
+
 /// Why this slice's pixel data cannot be decoded here, or `None` when it can.
 fn transfer_syntax_problem(s: &SliceInfo) -> Option<String> {
     let Some(ts) = TransferSyntaxRegistry.get(&s.ts) else {
@@ -83,21 +94,11 @@ fn transfer_syntax_problem(s: &SliceInfo) -> Option<String> {
     };
     match ts.codec() {
         Codec::None => None,
-        // jpeg-decoder, dicom-rs's JPEG codec, decodes DCT-based JPEG at 8-bit precision only
-        // (PS3.5 Table 8.2.1-1: 12 bits stored means a 12-bit JPEG stream here).
-        Codec::EncapsulatedPixelData(Some(_), _) if s.ts == JPEG_EXTENDED && s.bits_stored > 8 => {
-            Some(format!(
-                "transfer syntax {} with {} bits stored: 12-bit lossy JPEG cannot be decoded \
-                 (dicom-rs's JPEG decoder, jpeg-decoder, reads 8-bit lossy JPEG only)",
-                ts_label(&s.ts),
-                s.bits_stored
-            ))
-        }
         Codec::EncapsulatedPixelData(Some(_), _) => None,
         _ => Some(format!(
             "transfer syntax {}: no decoder for it is built in (supported: uncompressed, \
-             RLE Lossless, JPEG Baseline, 8-bit JPEG Extended, JPEG Lossless, JPEG-LS and \
-             JPEG 2000)",
+             RLE Lossless, JPEG Baseline, 8- and 12-bit JPEG Extended, JPEG Lossless, JPEG-LS \
+             and JPEG 2000)",
             ts_label(&s.ts)
         )),
     }
@@ -1283,13 +1284,57 @@ fn read_pixel_content(path: &Path) -> Result<PixelContent, VolumeError> {
 }
 
 /// Decodes frame `s.frame` of an encapsulated file with dicom-rs's decoder for its transfer
-/// syntax: `need` bytes of little-endian samples, BitsAllocated wide.
+/// syntax, or libjpeg-turbo's for 12-bit lossy JPEG: `need` bytes of little-endian samples,
+/// BitsAllocated wide.
 fn decode_frame(
     s: &SliceInfo,
     object: &DefaultDicomObject,
     need: usize,
 ) -> Result<Vec<u8>, VolumeError> {
     let ts = object.meta().transfer_syntax();
+    let what = if s.frames > 1 {
+        format!("frame {} of {}", s.frame + 1, s.frames)
+    } else {
+        "the image".to_string()
+    };
+    // The frame's fragments, joined when it spans several (found by the basic offset table).
+    let Some(data) = object.frame_pixel_data(s.frame) else {
+        return Err(VolumeError::format(
+            &s.path,
+            format!("{what} has no pixel data fragment (or no offset table entry)"),
+        ));
+    };
+    if uses_jpeg12(s) {
+        match jpeg12::decode_gray12(&data, s.cols, s.rows) {
+            Ok(Some(samples)) if samples.len() * 2 == need => {
+                let mut buf = Vec::with_capacity(need);
+                buf.extend(samples.iter().flat_map(|v| v.to_le_bytes()));
+                return Ok(buf);
+            }
+            Ok(Some(samples)) => {
+                return Err(VolumeError::format(
+                    &s.path,
+                    format!(
+                        "decoding {what} ({}) gave {} 16-bit samples; Columns {} × Rows {} × {} \
+                         bytes needs {need} bytes",
+                        ts_label(ts),
+                        samples.len(),
+                        s.cols,
+                        s.rows,
+                        s.bytes_per_sample()
+                    ),
+                ));
+            }
+            // An 8-bit stream despite the bits stored: jpeg-decoder reads it below.
+            Ok(None) => {}
+            Err(why) => {
+                return Err(VolumeError::format(
+                    &s.path,
+                    format!("decoding {what} ({}) failed: {why}", ts_label(ts)),
+                ));
+            }
+        }
+    }
     let reader = TransferSyntaxRegistry
         .get(ts)
         .and_then(|t| t.pixel_data_reader())
@@ -1302,17 +1347,6 @@ fn decode_frame(
                 ),
             )
         })?;
-    let what = if s.frames > 1 {
-        format!("frame {} of {}", s.frame + 1, s.frames)
-    } else {
-        "the image".to_string()
-    };
-    let Some(data) = object.frame_pixel_data(s.frame) else {
-        return Err(VolumeError::format(
-            &s.path,
-            format!("{what} has no pixel data fragment (or no offset table entry)"),
-        ));
-    };
     let frame = OneFrame {
         file: object,
         data: &data,

@@ -11,6 +11,7 @@
 mod catalog;
 mod dicom;
 mod error;
+mod jpeg12;
 mod nifti;
 mod nrrd;
 mod phantom;
