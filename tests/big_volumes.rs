@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use serde_json::json;
 use voxlight_protocol::ServerMessage;
-use voxlight_server::ServerConfig;
+use voxlight_app::ServerConfig;
 use voxlight_tests::{Client, TestServer};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

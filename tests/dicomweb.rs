@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 
 use serde_json::json;
 use voxlight_protocol::ServerMessage;
-use voxlight_server::{DicomWebSource, ServerConfig};
+use voxlight_app::{DicomWebSource, ServerConfig};
 use voxlight_tests::{Client, Incoming, TestServer, shared_data};
 
 const ORTHANC: &str = "/usr/sbin/Orthanc";

@@ -18,7 +18,7 @@ use voxlight_protocol::{
     Camera, ClientMessage, Light, MAX_MESSAGE_BYTES, Scene as SceneFile, ServerMessage, TfPoint,
     TransferFunction, Viewport, join_frame, split_frame,
 };
-use voxlight_server::session::validate_message;
+use voxlight_app::session::validate_message;
 use voxlight_volumes::Volume;
 
 // ---------- allocation accounting ----------
@@ -597,7 +597,7 @@ fn check_scene(bytes: &[u8]) {
     let Ok(file) = serde_json::from_slice::<SceneFile>(bytes) else {
         return;
     };
-    if let Ok(scene) = voxlight_server::offline::engine_scene(&file, tiny_volume()) {
+    if let Ok(scene) = voxlight_app::offline::engine_scene(&file, tiny_volume()) {
         assert!(scene.validate().is_ok());
         assert!(scene.target_iterations >= 1);
     }

@@ -13,7 +13,7 @@ use tokio_tungstenite::tungstenite::Message;
 use tokio_tungstenite::{MaybeTlsStream, WebSocketStream};
 use tokio_util::sync::CancellationToken;
 use voxlight_protocol::{FrameFormat, FrameMeta, ServerMessage, split_frame};
-use voxlight_server::{AppState, Server, ServerConfig};
+use voxlight_app::{AppState, Server, ServerConfig};
 
 /// The shared engine of a test binary (opening lavapipe once is enough).
 pub fn engine_gpu() -> Arc<voxlight_engine::Gpu> {
@@ -79,7 +79,7 @@ impl TestServer {
         let request = axum::http::Request::get(path)
             .body(axum::body::Body::empty())
             .expect("request");
-        let response = voxlight_server::app(self.state.clone())
+        let response = voxlight_app::app(self.state.clone())
             .oneshot(request)
             .await
             .expect("route");

@@ -7,8 +7,8 @@ use std::time::{Duration, Instant};
 
 use serde_json::json;
 use voxlight_protocol::{ErrorCode, ServerMessage};
-use voxlight_server::ServerConfig;
-use voxlight_server::lifecycle::drain;
+use voxlight_app::ServerConfig;
+use voxlight_app::lifecycle::drain;
 use voxlight_tests::{Client, TestServer};
 
 fn hello(name: &str) -> serde_json::Value {

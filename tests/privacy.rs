@@ -9,7 +9,7 @@ use dicom_core::{DataElement, PrimitiveValue, VR};
 use dicom_dictionary_std::tags;
 use serde_json::json;
 use voxlight_protocol::ServerMessage;
-use voxlight_server::ServerConfig;
+use voxlight_app::ServerConfig;
 use voxlight_tests::{Client, TestServer, shared_data};
 
 #[derive(Clone, Default)]

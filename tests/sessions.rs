@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 
 use serde_json::json;
 use voxlight_protocol::{ClientMessage, ErrorCode, FrameFormat, ServerMessage};
-use voxlight_server::ServerConfig;
+use voxlight_app::ServerConfig;
 use voxlight_tests::{Client, DecodedFrame, Incoming, TestServer};
 
 fn session_id(welcome: &ServerMessage) -> String {
@@ -376,7 +376,7 @@ async fn the_global_gpu_memory_budget_refuses_what_does_not_fit() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn loadgen_measures_latency_and_frame_rates() {
     let server = TestServer::start(None).await.unwrap();
-    let report = voxlight_server::loadgen::run(voxlight_server::loadgen::LoadConfig {
+    let report = voxlight_app::loadgen::run(voxlight_app::loadgen::LoadConfig {
         url: server.ws_url(),
         sessions: 2,
         viewers: 2,
@@ -409,7 +409,7 @@ async fn loadgen_measures_latency_and_frame_rates() {
     // Against a server that refuses it, errors are reported, not hidden.
     let refusing = TestServer::start_with(ServerConfig {
         default_dataset: Some("phantom:sphere".into()),
-        access: voxlight_server::auth::Access {
+        access: voxlight_app::auth::Access {
             tokens: vec!["t".into()],
             allowed_origins: vec![],
         },
@@ -417,7 +417,7 @@ async fn loadgen_measures_latency_and_frame_rates() {
     })
     .await
     .unwrap();
-    let report = voxlight_server::loadgen::run(voxlight_server::loadgen::LoadConfig {
+    let report = voxlight_app::loadgen::run(voxlight_app::loadgen::LoadConfig {
         url: refusing.ws_url(),
         sessions: 1,
         viewers: 1,

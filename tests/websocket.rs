@@ -275,7 +275,7 @@ async fn get_json(app: axum::Router, uri: &str) -> (StatusCode, serde_json::Valu
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn http_routes_list_datasets_and_serve_the_client() {
-    let server = TestServer::start_with(voxlight_server::ServerConfig {
+    let server = TestServer::start_with(voxlight_app::ServerConfig {
         data_dir: Some(shared_data()),
         default_dataset: None,
         preload: true,
@@ -283,7 +283,7 @@ async fn http_routes_list_datasets_and_serve_the_client() {
     })
     .await
     .unwrap();
-    let app = voxlight_server::app(server.state.clone());
+    let app = voxlight_app::app(server.state.clone());
     let (status, health) = get_json(app.clone(), "/healthz").await;
     assert_eq!(status, StatusCode::OK);
     assert_eq!(health["status"], "ok");
@@ -363,11 +363,11 @@ async fn chest_ct_opens_by_name_with_hounsfield_range_and_spacing() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn tokens_and_origins_are_checked_before_the_upgrade() {
-    let server = TestServer::start_with(voxlight_server::ServerConfig {
+    let server = TestServer::start_with(voxlight_app::ServerConfig {
         data_dir: None,
         default_dataset: Some("phantom:sphere".into()),
         preload: false,
-        access: voxlight_server::auth::Access {
+        access: voxlight_app::auth::Access {
             tokens: vec!["s3cret".into()],
             allowed_origins: vec!["https://viewer.example".into()],
         },
@@ -435,7 +435,7 @@ async fn tokens_and_origins_are_checked_before_the_upgrade() {
     .unwrap();
     client.close().await;
     // The dataset list needs the token too.
-    let app = voxlight_server::app(server.state.clone());
+    let app = voxlight_app::app(server.state.clone());
     let (status, body) = get_json(app.clone(), "/api/datasets").await;
     assert_eq!(status, StatusCode::UNAUTHORIZED);
     assert_eq!(body["error"], "unauthorized");
@@ -479,7 +479,7 @@ async fn a_flood_is_rate_limited_and_the_session_survives() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn metrics_count_sessions_frames_errors_and_latency() {
     let server = TestServer::start(None).await.unwrap();
-    let app = voxlight_server::app(server.state.clone());
+    let app = voxlight_app::app(server.state.clone());
     let scrape = |app: axum::Router| async move {
         let response = app
             .oneshot(Request::get("/metrics").body(Body::empty()).unwrap())

@@ -73,12 +73,12 @@ pub fn check_volume(volume: &Volume) {
         "world extent {:?}",
         volume.world_extent()
     );
-    let tf = voxlight_server::datasets::default_tf(volume);
+    let tf = voxlight_app::datasets::default_tf(volume);
     voxlight_engine::tf::validate(&tf).expect("the default TF of a loaded volume is valid");
-    let lights = voxlight_server::datasets::default_lights_for(volume);
+    let lights = voxlight_app::datasets::default_lights_for(volume);
     voxlight_engine::scene::validate_lights(&lights).expect("default lights are valid");
     // What a viewer receives must parse again.
-    let details = voxlight_server::datasets::details_of(volume);
+    let details = voxlight_app::datasets::details_of(volume);
     let json = serde_json::to_string(&details).expect("details serialize");
     let back: DatasetDetails = serde_json::from_str(&json).expect("details parse back");
     assert_eq!(back.dims, details.dims);

@@ -8,7 +8,7 @@
 
 use libfuzzer_sys::fuzz_target;
 use voxlight_protocol::{ClientMessage, MAX_MESSAGE_BYTES, ServerMessage};
-use voxlight_server::session::validate_message;
+use voxlight_app::session::validate_message;
 
 fuzz_target!(|data: &[u8]| {
     if data.len() > MAX_MESSAGE_BYTES {

@@ -25,7 +25,7 @@ fuzz_target!(|data: &[u8]| {
     let Ok(file) = serde_json::from_str::<SceneFile>(text) else {
         return;
     };
-    if let Ok(scene) = voxlight_server::offline::engine_scene(&file, volume()) {
+    if let Ok(scene) = voxlight_app::offline::engine_scene(&file, volume()) {
         assert!(scene.validate().is_ok());
         assert!(scene.target_iterations >= 1);
     }

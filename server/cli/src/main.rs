@@ -8,7 +8,7 @@ use anyhow::Context;
 use clap::{Parser, Subcommand};
 use tokio_util::sync::CancellationToken;
 use voxlight_engine::techniques::irradiance::{DEFAULT_BOUNCES, Historygrams};
-use voxlight_server::{
+use voxlight_app::{
     Server, ServerConfig, bench, bench_interactive, bench_irradiance, bench_manylight, lifecycle,
     loadgen, offline,
 };
@@ -58,7 +58,7 @@ enum Command {
         grace_period_s: u64,
         /// GPU memory (MiB) all sessions and volumes together may use; a session that would
         /// exceed it is refused with `gpu_memory`.
-        #[arg(long, default_value_t = voxlight_server::DEFAULT_GPU_MEMORY_BUDGET >> 20)]
+        #[arg(long, default_value_t = voxlight_app::DEFAULT_GPU_MEMORY_BUDGET >> 20)]
         gpu_memory_mib: u64,
         /// Preview frame time (ms) the interaction mode picks its resolution scale for while
         /// edits stream in; 0 turns the interaction mode off (every edit goes straight to the
@@ -348,13 +348,13 @@ fn run() -> anyhow::Result<()> {
                     data_dir: data,
                     default_dataset,
                     preload: !no_preload,
-                    access: voxlight_server::auth::Access {
+                    access: voxlight_app::auth::Access {
                         tokens,
                         allowed_origins,
                     },
                     grace_period: Some(Duration::from_secs(grace_period_s)),
                     gpu_memory_budget: Some(gpu_memory_mib.saturating_mul(1 << 20)),
-                    interaction: Some(voxlight_server::render_service::Interaction {
+                    interaction: Some(voxlight_app::render_service::Interaction {
                         enabled: interactive_frame_ms > 0,
                         frame_target: Duration::from_millis(interactive_frame_ms),
                         rest_after: Duration::from_millis(rest_after_ms),
@@ -363,7 +363,7 @@ fn run() -> anyhow::Result<()> {
                     route_prefix,
                     ping_interval: None,
                     max_volume_bytes: max_volume_mib.map(|m| m.saturating_mul(1 << 20)),
-                    dicomweb: dicomweb.map(|url| voxlight_server::DicomWebSource {
+                    dicomweb: dicomweb.map(|url| voxlight_app::DicomWebSource {
                         url,
                         credentials: dicomweb_credentials,
                     }),
@@ -576,8 +576,8 @@ fn run() -> anyhow::Result<()> {
                     let vtk_datasets = datasets
                         .clone()
                         .unwrap_or_else(|| vec!["bonsai".to_owned(), "ct".to_owned()]);
-                    voxlight_server::bench_vtk::preview_vtk(
-                        &voxlight_server::bench_vtk::PreviewVtkBench {
+                    voxlight_app::bench_vtk::preview_vtk(
+                        &voxlight_app::bench_vtk::PreviewVtkBench {
                             data_dir: data.as_deref(),
                             sizes: &sizes,
                             frames: iterations.max(1),
@@ -623,15 +623,15 @@ fn run() -> anyhow::Result<()> {
                         .map(str::to_owned)
                         .to_vec()
                     });
-                    let bench = voxlight_server::bench_load::LoadBench {
+                    let bench = voxlight_app::bench_load::LoadBench {
                         data_dir: &data,
                         datasets: &load_datasets,
                         repeats,
                     };
-                    if voxlight_server::bench_load::child(&bench)? {
+                    if voxlight_app::bench_load::child(&bench)? {
                         return Ok(());
                     }
-                    voxlight_server::bench_load::load(&bench)?
+                    voxlight_app::bench_load::load(&bench)?
                 }
                 other => anyhow::bail!(
                     "unknown benchmark `{other}`; available: raymarch, preview, preview-vtk, interactive, tf-edit, manylight, convergence, load"
@@ -665,7 +665,7 @@ fn interactive(
         let config = ServerConfig {
             data_dir: data,
             preload: false,
-            interaction: Some(voxlight_server::render_service::Interaction::default()),
+            interaction: Some(voxlight_app::render_service::Interaction::default()),
             ..ServerConfig::default()
         };
         let server = Server::start(&config, engine, shutdown.clone())?;

@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 use std::process::Command;
 
-use voxlight_server::offline::read_pfm;
+use voxlight_app::offline::read_pfm;
 
 fn temp_dir(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("voxlight-cli-{name}-{}", std::process::id()));
