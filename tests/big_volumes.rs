@@ -4,8 +4,8 @@
 use std::time::Duration;
 
 use serde_json::json;
-use voxlight_protocol::ServerMessage;
 use voxlight_app::ServerConfig;
+use voxlight_protocol::ServerMessage;
 use voxlight_tests::{Client, TestServer};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

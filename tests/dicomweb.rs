@@ -8,8 +8,8 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use serde_json::json;
-use voxlight_protocol::ServerMessage;
 use voxlight_app::{DicomWebSource, ServerConfig};
+use voxlight_protocol::ServerMessage;
 use voxlight_tests::{Client, Incoming, TestServer, shared_data};
 
 const ORTHANC: &str = "/usr/sbin/Orthanc";

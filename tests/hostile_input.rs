@@ -14,11 +14,11 @@ use std::sync::OnceLock;
 use proptest::prelude::*;
 use proptest::test_runner::Config;
 use serde_json::{Value, json};
+use voxlight_app::session::validate_message;
 use voxlight_protocol::{
     Camera, ClientMessage, Light, MAX_MESSAGE_BYTES, Scene as SceneFile, ServerMessage, TfPoint,
     TransferFunction, Viewport, join_frame, split_frame,
 };
-use voxlight_app::session::validate_message;
 use voxlight_volumes::Volume;
 
 // ---------- allocation accounting ----------

@@ -7,9 +7,9 @@
 use std::time::Duration;
 
 use serde_json::json;
-use voxlight_protocol::{ServerMessage, TechniqueDetails};
 use voxlight_app::ServerConfig;
 use voxlight_app::render_service::Interaction;
+use voxlight_protocol::{ServerMessage, TechniqueDetails};
 use voxlight_tests::{Client, DecodedFrame, Incoming, TestServer};
 
 const CAMERA_EDITS: u64 = 5;

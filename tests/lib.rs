@@ -12,8 +12,8 @@ use tokio::net::TcpStream;
 use tokio_tungstenite::tungstenite::Message;
 use tokio_tungstenite::{MaybeTlsStream, WebSocketStream};
 use tokio_util::sync::CancellationToken;
-use voxlight_protocol::{FrameFormat, FrameMeta, ServerMessage, split_frame};
 use voxlight_app::{AppState, Server, ServerConfig};
+use voxlight_protocol::{FrameFormat, FrameMeta, ServerMessage, split_frame};
 
 /// The shared engine of a test binary (opening lavapipe once is enough).
 pub fn engine_gpu() -> Arc<voxlight_engine::Gpu> {

@@ -6,9 +6,9 @@
 use std::time::{Duration, Instant};
 
 use serde_json::json;
-use voxlight_protocol::{ErrorCode, ServerMessage};
 use voxlight_app::ServerConfig;
 use voxlight_app::lifecycle::drain;
+use voxlight_protocol::{ErrorCode, ServerMessage};
 use voxlight_tests::{Client, TestServer};
 
 fn hello(name: &str) -> serde_json::Value {

@@ -169,3 +169,9 @@ fn no_import_circles_in_the_protocol() {
         "modules that import each other: {found:?}"
     );
 }
+
+#[test]
+fn no_import_circles_in_the_benches() {
+    let found = circles(&graph(&server_crate("bench/src")));
+    assert!(found.is_empty(), "modules that import each other: {found:?}");
+}

@@ -8,8 +8,8 @@ use std::sync::{Arc, Mutex};
 use dicom_core::{DataElement, PrimitiveValue, VR};
 use dicom_dictionary_std::tags;
 use serde_json::json;
-use voxlight_protocol::ServerMessage;
 use voxlight_app::ServerConfig;
+use voxlight_protocol::ServerMessage;
 use voxlight_tests::{Client, TestServer, shared_data};
 
 #[derive(Clone, Default)]

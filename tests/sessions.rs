@@ -5,8 +5,8 @@
 use std::time::{Duration, Instant};
 
 use serde_json::json;
-use voxlight_protocol::{ClientMessage, ErrorCode, FrameFormat, ServerMessage};
 use voxlight_app::ServerConfig;
+use voxlight_protocol::{ClientMessage, ErrorCode, FrameFormat, ServerMessage};
 use voxlight_tests::{Client, DecodedFrame, Incoming, TestServer};
 
 fn session_id(welcome: &ServerMessage) -> String {

@@ -3,12 +3,6 @@
 
 pub mod adapt;
 pub mod auth;
-pub mod bench;
-pub mod bench_interactive;
-pub mod bench_irradiance;
-pub mod bench_load;
-pub mod bench_manylight;
-pub mod bench_vtk;
 pub mod datasets;
 pub mod dicomweb;
 pub mod encode;

@@ -7,11 +7,12 @@ use std::time::Duration;
 use anyhow::Context;
 use clap::{Parser, Subcommand};
 use tokio_util::sync::CancellationToken;
-use voxlight_engine::techniques::irradiance::{DEFAULT_BOUNCES, Historygrams};
-use voxlight_app::{
-    Server, ServerConfig, bench, bench_interactive, bench_irradiance, bench_manylight, lifecycle,
-    loadgen, offline,
+use voxlight_app::{Server, ServerConfig, lifecycle, loadgen, offline};
+use voxlight_bench::{
+    engine as bench, interactive as bench_interactive, irradiance as bench_irradiance,
+    manylight as bench_manylight,
 };
+use voxlight_engine::techniques::irradiance::{DEFAULT_BOUNCES, Historygrams};
 
 #[derive(Parser)]
 #[command(
@@ -576,14 +577,12 @@ fn run() -> anyhow::Result<()> {
                     let vtk_datasets = datasets
                         .clone()
                         .unwrap_or_else(|| vec!["bonsai".to_owned(), "ct".to_owned()]);
-                    voxlight_app::bench_vtk::preview_vtk(
-                        &voxlight_app::bench_vtk::PreviewVtkBench {
-                            data_dir: data.as_deref(),
-                            sizes: &sizes,
-                            frames: iterations.max(1),
-                            datasets: &vtk_datasets,
-                        },
-                    )?
+                    voxlight_bench::vtk::preview_vtk(&voxlight_bench::vtk::PreviewVtkBench {
+                        data_dir: data.as_deref(),
+                        sizes: &sizes,
+                        frames: iterations.max(1),
+                        datasets: &vtk_datasets,
+                    })?
                 }
                 "interactive" => {
                     let viewports = viewports
@@ -623,15 +622,15 @@ fn run() -> anyhow::Result<()> {
                         .map(str::to_owned)
                         .to_vec()
                     });
-                    let bench = voxlight_app::bench_load::LoadBench {
+                    let bench = voxlight_bench::load::LoadBench {
                         data_dir: &data,
                         datasets: &load_datasets,
                         repeats,
                     };
-                    if voxlight_app::bench_load::child(&bench)? {
+                    if voxlight_bench::load::child(&bench)? {
                         return Ok(());
                     }
-                    voxlight_app::bench_load::load(&bench)?
+                    voxlight_bench::load::load(&bench)?
                 }
                 other => anyhow::bail!(
                     "unknown benchmark `{other}`; available: raymarch, preview, preview-vtk, interactive, tf-edit, manylight, convergence, load"

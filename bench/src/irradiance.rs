@@ -55,7 +55,7 @@ fn save_png(path: &Path, picture: &[[f32; 3]], size: u32) -> anyhow::Result<()> 
         .iter()
         .flat_map(|p| [srgb(p[0]), srgb(p[1]), srgb(p[2]), 255])
         .collect();
-    std::fs::write(path, crate::encode::png(&rgba, size, size)?)
+    std::fs::write(path, voxlight_app::encode::png(&rgba, size, size)?)
         .with_context(|| format!("writing {}", path.display()))
 }
 
@@ -337,7 +337,7 @@ fn mean_ratio(numerator: &[f64], denominator: &[f64]) -> f64 {
 /// background noise (values below 0.22, most of the volume), the engine's two materials, the
 /// chest CT's soft tissue and bone (the viewer's default).
 fn bench_tf(name: &str, volume: &voxlight_volumes::Volume) -> TransferFunction {
-    use crate::bench::tf_point as point;
+    use crate::engine::tf_point as point;
     match name {
         "bonsai" => TransferFunction {
             points: vec![
@@ -349,8 +349,8 @@ fn bench_tf(name: &str, volume: &voxlight_volumes::Volume) -> TransferFunction {
                 point(1.0, [0.8, 0.45, 0.3], 1.0),
             ],
         },
-        "engine" => crate::bench::engine_tf(),
-        _ => crate::datasets::default_tf(volume),
+        "engine" => crate::engine::engine_tf(),
+        _ => voxlight_app::datasets::default_tf(volume),
     }
 }
 
@@ -824,7 +824,7 @@ pub fn ceiling(options: &ConvergenceBench) -> anyhow::Result<serde_json::Value> 
 
 /// Options of `bench tf-edit --technique irradiance`.
 pub struct IrradianceTfEditBench<'a> {
-    pub scenarios: crate::bench::TfEditBench<'a>,
+    pub scenarios: crate::engine::TfEditBench<'a>,
     /// Frames that build the cache before the edit.
     pub build_frames: u32,
     /// Frames measured after it.
@@ -841,12 +841,12 @@ pub struct IrradianceTfEditBench<'a> {
 pub fn tf_edit(options: &IrradianceTfEditBench) -> anyhow::Result<serde_json::Value> {
     let engine = Engine::new()?;
     let mut rows = Vec::new();
-    for scenario in crate::bench::tf_edit_scenarios(&options.scenarios)? {
+    for scenario in crate::engine::tf_edit_scenarios(&options.scenarios)? {
         let gpu_volume = engine.upload_volume(&scenario.volume)?;
         let base = Scene {
             camera: scenario.camera,
             tf: scenario.tf.clone(),
-            lights: crate::datasets::default_lights_for(&scenario.volume),
+            lights: voxlight_app::datasets::default_lights_for(&scenario.volume),
             viewport: Viewport {
                 width: options.scenarios.size,
                 height: options.scenarios.size,

@@ -76,11 +76,11 @@ fn manylight_renderer(
 
 pub fn manylight(options: &ManylightBench) -> anyhow::Result<serde_json::Value> {
     let engine = Engine::new()?;
-    let (dataset, volume) = crate::bench::ct_256(options.data_dir)?;
+    let (dataset, volume) = crate::engine::ct_256(options.data_dir)?;
     let gpu_volume = engine.upload_volume(&volume)?;
     let scene = Scene {
         camera: Camera::default(),
-        tf: crate::datasets::default_tf(&volume),
+        tf: voxlight_app::datasets::default_tf(&volume),
         lights: default_lights(),
         viewport: Viewport {
             width: options.size,

@@ -220,7 +220,7 @@ pub fn preview_vtk(options: &PreviewVtkBench) -> anyhow::Result<serde_json::Valu
             // Builds the light volume (pipelines exist already).
             let (_, first) = renderer.preview_frame(&engine, &scene, 1, LightDetail::Full)?;
             let light_ms = first.light_time.as_secs_f64() * 1000.0;
-            let medians = crate::bench::orbit_previews(
+            let medians = crate::engine::orbit_previews(
                 &engine,
                 &mut renderer,
                 &mut scene,

@@ -19,7 +19,7 @@ use voxlight_protocol::{
     Viewport, split_frame,
 };
 
-use crate::loadgen::Percentiles;
+use voxlight_app::loadgen::Percentiles;
 
 /// Frames the bench lets be in flight (as the web viewer).
 const WINDOW: u32 = 2;
@@ -579,12 +579,12 @@ mod tests {
     #[test]
     fn luminance_of_encoded_frames() {
         let grey = vec![188u8; 16 * 16 * 4];
-        let png = crate::encode::png(&grey, 16, 16).unwrap();
+        let png = voxlight_app::encode::png(&grey, 16, 16).unwrap();
         // sRGB 188 is linear 0.5.
         let b = mean_brightness(FrameFormat::Png, &png).unwrap();
         assert!((b.linear - 0.5).abs() < 0.01, "{b:?}");
         assert!((b.luma - 188.0 / 255.0).abs() < 1e-9, "{b:?}");
-        let jpeg = crate::encode::jpeg(&grey, 16, 16, 95).unwrap();
+        let jpeg = voxlight_app::encode::jpeg(&grey, 16, 16, 95).unwrap();
         let b = mean_brightness(FrameFormat::Jpeg, &jpeg).unwrap();
         assert!((b.linear - 0.5).abs() < 0.02, "{b:?}");
     }

@@ -32,7 +32,7 @@ pub fn ct_256(data_dir: Option<&Path>) -> anyhow::Result<(String, voxlight_volum
 fn speed_scene(volume: &voxlight_volumes::Volume, size: u32) -> Scene {
     Scene {
         camera: Camera::default(),
-        tf: crate::datasets::default_tf(volume),
+        tf: voxlight_app::datasets::default_tf(volume),
         lights: default_lights(),
         viewport: Viewport {
             width: size,
@@ -215,7 +215,7 @@ pub(crate) fn tf_edit_scenarios(options: &TfEditBench) -> anyhow::Result<Vec<Sce
     let mut out = Vec::new();
     let mut cornell = voxlight_volumes::phantom("cornell", options.max_dim.min(64))?;
     cornell.name = "phantom:cornell".to_owned();
-    let tf = crate::datasets::cornell_tf();
+    let tf = voxlight_app::datasets::cornell_tf();
     // cornell_tf: a leading transparent pair, then two points per material in
     // CORNELL_MATERIALS order (medium, left, right, white walls, tall block, sphere).
     let material = |name: &str| {
@@ -270,7 +270,7 @@ pub(crate) fn tf_edit_scenarios(options: &TfEditBench) -> anyhow::Result<Vec<Sce
         } else {
             // HU default: [-200, 0, 150, 300, 1200]: bone 3..5, soft tissue 1..3, skin and
             // the outer soft layer 0..2.
-            let tf = crate::datasets::default_tf(&volume);
+            let tf = voxlight_app::datasets::default_tf(&volume);
             let n = tf.points.len();
             let edits = if n >= 5 {
                 edits_for(&tf, 3..5, 1..3, 0..2)
@@ -478,7 +478,7 @@ fn scenario_scene(scenario: &Scenario, options: &TfEditBench) -> Scene {
     Scene {
         camera: scenario.camera,
         tf: scenario.tf.clone(),
-        lights: crate::datasets::default_lights_for(&scenario.volume),
+        lights: voxlight_app::datasets::default_lights_for(&scenario.volume),
         viewport: Viewport {
             width: options.size,
             height: options.size,
