@@ -9,6 +9,7 @@
 //! - `vtk`: the full-resolution preview beside VTK's FixedPoint ray caster, in one run.
 //! - `load`: time and peak host memory of loading each dataset.
 
+pub mod cli;
 pub mod engine;
 pub mod interactive;
 pub mod irradiance;
