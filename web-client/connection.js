@@ -24,6 +24,8 @@ export const MAX_MESSAGE_BYTES = 64 * 1024;
  * @property {number} scene_version
  * @property {number} render_ms
  * @property {number} encode_ms
+ * @property {boolean} [preview] an interactive preview while edits stream in (absent: false)
+ * @property {number} [resolution_scale] image size over the viewport's, per axis (absent: 1)
  */
 
 /**
