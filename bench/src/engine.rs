@@ -6,6 +6,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use serde_json::json;
+use voxlight_engine::image_stats::median;
 use voxlight_engine::preview::LightDetail;
 use voxlight_engine::{Engine, Scene};
 use voxlight_protocol::{Camera, TfPoint, TransferFunction, Viewport, default_lights};
@@ -591,15 +592,6 @@ pub(crate) fn orbit_previews(
         medians.push((divisor, median(times)));
     }
     Ok(medians)
-}
-
-pub(crate) fn median(mut values: Vec<f64>) -> f64 {
-    values.sort_by(f64::total_cmp);
-    match values.len() {
-        0 => f64::NAN,
-        n if n % 2 == 1 => values[n / 2],
-        n => 0.5 * (values[n / 2 - 1] + values[n / 2]),
-    }
 }
 
 /// ms per interactive preview frame (engine::preview: view rays, tone mapping and readback)

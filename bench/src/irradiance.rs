@@ -12,6 +12,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use serde_json::json;
+use voxlight_engine::image_stats::luminance;
 use voxlight_engine::techniques::irradiance::{
     CachedLight, Historygrams, Invalidation, Irradiance, IrradianceConfig, Locking, ViewEvent,
     cached_light,
@@ -64,10 +65,6 @@ struct Reference {
     mean: Vec<[f32; 3]>,
     mean_luminance: f64,
     noise: f64,
-}
-
-fn luminance(c: [f32; 3]) -> f64 {
-    0.2126 * c[0] as f64 + 0.7152 * c[1] as f64 + 0.0722 * c[2] as f64
 }
 
 impl Reference {

@@ -10,6 +10,7 @@ use std::time::{Duration, Instant};
 
 use serde_json::json;
 use voxlight_engine::Technique;
+use voxlight_engine::image_stats::relative_rms;
 use voxlight_engine::passes::manylight::TransmittanceMode;
 use voxlight_engine::techniques::manylight::{Manylight, ManylightConfig};
 use voxlight_engine::{Change, Engine, GpuVolume, Renderer, Scene};
@@ -44,19 +45,6 @@ fn render(
         renderer.step(engine, scene, Duration::from_secs(5))?;
     }
     Ok(renderer.read_hdr(engine)?)
-}
-
-/// Relative RMS error over the image (RMS of the difference over the reference's mean).
-fn relative_rms(image: &[[f32; 3]], reference: &[[f32; 3]]) -> f64 {
-    let n = (3 * reference.len()) as f64;
-    let mean = reference.iter().flatten().map(|&v| v as f64).sum::<f64>() / n;
-    let sq: f64 = image
-        .iter()
-        .flatten()
-        .zip(reference.iter().flatten())
-        .map(|(&a, &b)| (a as f64 - b as f64).powi(2))
-        .sum();
-    (sq / n).sqrt() / mean.max(1e-12)
 }
 
 fn manylight_renderer(

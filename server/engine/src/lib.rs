@@ -5,6 +5,7 @@
 pub mod camera;
 pub mod gpu;
 pub mod gpu_timer;
+pub mod image_stats;
 pub mod macrocell;
 pub mod passes;
 pub mod preview;

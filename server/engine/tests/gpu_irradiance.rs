@@ -10,6 +10,7 @@ mod common;
 use std::sync::Arc;
 
 use common::*;
+use voxlight_engine::image_stats::{luminance, relative_rms_luminance};
 use voxlight_engine::techniques::irradiance::{
     CachedLight, Irradiance, IrradianceConfig, Locking, ViewEvent,
 };
@@ -52,10 +53,6 @@ fn mean(hdr: &[[f32; 3]]) -> [f64; 3] {
     m
 }
 
-fn lum(c: [f32; 3]) -> f64 {
-    0.2126 * c[0] as f64 + 0.7152 * c[1] as f64 + 0.0722 * c[2] as f64
-}
-
 fn details(renderer: &Renderer) -> voxlight_engine::TechniqueStats {
     renderer.stats()
 }
@@ -86,17 +83,6 @@ fn white_furnace_is_exact_through_the_cache() {
             );
         }
     }
-}
-
-/// Relative RMS difference of two pictures' luminance (over the mean of `reference`).
-fn relative_rms(hdr: &[[f32; 3]], reference: &[[f32; 3]]) -> f64 {
-    let (mut sq, mut sum) = (0.0, 0.0);
-    for (a, b) in hdr.iter().zip(reference) {
-        sq += (lum(*a) - lum(*b)).powi(2);
-        sum += lum(*b);
-    }
-    let n = hdr.len() as f64;
-    (sq / n).sqrt() / (sum / n)
 }
 
 fn lit_sphere(size: u32) -> Scene {
@@ -138,7 +124,7 @@ fn multiple_scattering_converges_to_pathtrace() {
             "mean {got:?} vs pathtrace {exp:?} ({stats:?})"
         );
     }
-    let rms = relative_rms(&hdr, &want);
+    let rms = relative_rms_luminance(&hdr, &want);
     assert!(rms < 0.06, "relative RMS {rms} ({stats:?})");
     assert!(stats.cache_entries.unwrap() >= 30, "{stats:?}");
     assert!(stats.cache_hit_rate.unwrap() > 0.3, "{stats:?}");
@@ -210,7 +196,7 @@ fn screen_space_locking_builds_a_cache_that_converges_too() {
     let want = reference("pathtrace", volume, &s, 256);
     let (got, exp) = (mean(&hdr), mean(&want));
     assert!(
-        (lum(got.map(|x| x as f32)) / lum(exp.map(|x| x as f32)) - 1.0).abs() < 0.02,
+        (luminance(got.map(|x| x as f32)) / luminance(exp.map(|x| x as f32)) - 1.0).abs() < 0.02,
         "mean {got:?} vs pathtrace {exp:?} ({stats:?})"
     );
 }
@@ -594,7 +580,7 @@ fn tracing_the_direct_light_keeps_shadow_edges_where_caching_it_blurs_them() {
         }
         let (hdr, _) = t.read_estimate(engine).unwrap();
         (
-            relative_rms(&hdr, &want),
+            relative_rms_luminance(&hdr, &want),
             lum_of(mean(&hdr)) / lum_of(mean(&want)),
         )
     };

@@ -7,28 +7,22 @@ mod common;
 use std::sync::Arc;
 
 use common::*;
+use voxlight_engine::image_stats::{luminance, relative_rms_luminance};
 use voxlight_engine::preview::{BrightnessMatch, LightDetail, PreviewMeans};
 use voxlight_engine::{Change, GpuVolume, Scene};
 use voxlight_protocol::{Camera, Light};
-
-fn luminance(p: &[f32; 3]) -> f64 {
-    (0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2]) as f64
-}
 
 /// Mean ratio (preview / reference) of the image's luminance, and the relative RMS error of
 /// the pixels' luminance (RMS of the difference over the reference's mean).
 fn compare(preview: &[[f32; 3]], reference: &[[f32; 3]]) -> (f64, f64) {
     assert_eq!(preview.len(), reference.len());
     let n = reference.len() as f64;
-    let mean_ref = reference.iter().map(luminance).sum::<f64>() / n;
-    let mean_pre = preview.iter().map(luminance).sum::<f64>() / n;
-    let mse = preview
-        .iter()
-        .zip(reference)
-        .map(|(a, b)| (luminance(a) - luminance(b)).powi(2))
-        .sum::<f64>()
-        / n;
-    (mean_pre / mean_ref, mse.sqrt() / mean_ref)
+    let mean_ref = reference.iter().map(|c| luminance(*c)).sum::<f64>() / n;
+    let mean_pre = preview.iter().map(|c| luminance(*c)).sum::<f64>() / n;
+    (
+        mean_pre / mean_ref,
+        relative_rms_luminance(preview, reference),
+    )
 }
 
 fn preview_hdr(volume: Arc<GpuVolume>, scene: &Scene, divisor: u32) -> Vec<[f32; 3]> {
@@ -206,7 +200,7 @@ fn preview_luminance(means: &PreviewMeans, brightness: &BrightnessMatch) -> f64 
             + f64::from(brightness.gain[k]) * means.single[k]
             + f64::from(brightness.multiple_weight[k]) * means.multiple[k]) as f32
     });
-    luminance(&c)
+    luminance(c)
 }
 
 fn converge(renderer: &mut voxlight_engine::Renderer, scene: &Scene) -> Vec<[f32; 3]> {
@@ -289,7 +283,7 @@ fn brightness_is_continuous_from_the_last_preview_to_the_still() {
             .means(engine, 1)
             .expect("means");
         let still = converge(&mut renderer, &scene);
-        let still_mean = still.iter().map(luminance).sum::<f64>() / still.len() as f64;
+        let still_mean = still.iter().map(|c| luminance(*c)).sum::<f64>() / still.len() as f64;
         let matched = preview_luminance(&means, &fitted) / still_mean - 1.0;
         let unmatched = preview_luminance(&means, &BrightnessMatch::new(false)) / still_mean - 1.0;
         eprintln!(
