@@ -2,7 +2,9 @@
 //! camera, the rendering techniques and tone mapping. No networking, no async runtime: callers
 //! drive it from a render thread.
 
+pub mod brightness;
 pub mod camera;
+pub mod frame;
 pub mod gpu;
 pub mod gpu_timer;
 pub mod image_stats;
