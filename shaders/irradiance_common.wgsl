@@ -4,6 +4,15 @@
 // multi-reference octree. Every pass binds the estimator bindings (0–5) and these (6–15), one
 // bind group layout. Rust twin: server/engine/src/passes/irradiance.rs.
 
+#import common
+#import volume
+#import scene
+#import macrocell
+#import tracking
+#import march
+#import lights
+#import path
+
 struct IrradianceParams {
     // The octree's root cube.
     root_min: vec3<f32>,

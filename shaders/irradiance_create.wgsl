@@ -8,6 +8,8 @@
 // extinction coefficients per half-axis (Eq. 6); its radii follow from them when the requests
 // pass stores it. Rust twin: server/engine/src/passes/irradiance.rs.
 
+#import irradiance_common
+
 const SAMPLES_PER_ROUND: u32 = 9u;
 
 var<workgroup> point_sums: array<vec4<f32>, 64>;

@@ -4,6 +4,8 @@
 // Pixels with fewer than two samples get PRIORITY_UNSAMPLED. Rust twin:
 // server/engine/src/passes/irradiance.rs.
 
+#import irradiance_common
+
 const PRIORITY_UNSAMPLED: f32 = 1e30;
 
 var<workgroup> gains: array<f32, 128>;

@@ -9,6 +9,8 @@
 // point lights' direct light is traced at every event and the cache holds only the rest.
 // Rust twin: server/engine/src/passes/irradiance.rs.
 
+#import irradiance_common
+
 var<workgroup> block_rays: atomic<u32>;
 var<workgroup> block_misses: atomic<u32>;
 // The block's claim: its miss with the smallest key, and that miss's deepest octree node.

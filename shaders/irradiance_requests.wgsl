@@ -8,6 +8,8 @@
 // run is repeatable.
 // Rust twin: server/engine/src/passes/irradiance.rs.
 
+#import irradiance_common
+
 const WG: u32 = 256u;
 // Lock states (words at node_held_offset / block_held_offset).
 const LOCK_HELD: u32 = 1u;

@@ -8,6 +8,8 @@
 // that estimate's 95% interval (widened by the threshold) loses the point too. Rust twin:
 // server/engine/src/passes/irradiance.rs.
 
+#import irradiance_common
+
 // Shrinks entry e's radii in the octant of x so that x lies just outside its zone: r_i − s·|l_i|
 // for the smallest s with Σ l_i² / (r_i − s·|l_i|)² ≥ 1 (bisection).
 fn exclude_point(e: u32, x: vec3<f32>) {

@@ -5,6 +5,8 @@
 // the area under the curve least whenever there is one too many. Nodes are packed as two
 // half floats. Rust twin: server/engine/src/passes/manylight.rs.
 
+#import manylight_common
+
 @group(0) @binding(0) var<uniform> scene: SceneUniforms;
 @group(0) @binding(1) var volume_tex: texture_3d<f32>;
 @group(0) @binding(2) var<storage, read> tf_lut: array<vec4<f32>>;

@@ -2,6 +2,11 @@
 // lights, the cube-map layout of their adaptive volumetric shadow maps (AVSMs) and the virtual
 // spherical light's geometry term. Rust twin: server/engine/src/passes/manylight.rs.
 
+#import common
+#import volume
+#import scene
+#import macrocell
+
 struct ManylightParams {
     // Virtual-light slots, and how many hold a light.
     capacity: u32,

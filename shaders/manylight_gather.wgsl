@@ -6,6 +6,9 @@
 // the light comes from its AVSM (point or trilinear lookup) or, as the baseline, from a
 // ray march. Rust twin: server/engine/src/passes/manylight.rs.
 
+#import march
+#import manylight_common
+
 @group(0) @binding(0) var<uniform> scene: SceneUniforms;
 @group(0) @binding(1) var volume_tex: texture_3d<f32>;
 @group(0) @binding(2) var<storage, read> tf_lut: array<vec4<f32>>;

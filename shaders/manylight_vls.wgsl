@@ -11,6 +11,9 @@
 // a work list, exactly those paths are traced again (the same random numbers per path).
 // Rust twin: server/engine/src/passes/manylight.rs.
 
+#import tracking
+#import manylight_common
+
 @group(0) @binding(0) var<uniform> scene: SceneUniforms;
 @group(0) @binding(1) var volume_tex: texture_3d<f32>;
 @group(0) @binding(2) var<storage, read> tf_lut: array<vec4<f32>>;

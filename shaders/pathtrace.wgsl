@@ -3,6 +3,14 @@
 // next-event estimation with ratio tracking, Henyey-Greenstein phase sampling, the environment
 // reached by escaping paths, Russian roulette. Rust twin: server/engine/src/passes/pathtrace.rs.
 
+#import common
+#import volume
+#import scene
+#import macrocell
+#import tracking
+#import lights
+#import path
+
 @group(0) @binding(0) var<uniform> scene: SceneUniforms;
 @group(0) @binding(1) var volume_tex: texture_3d<f32>;
 @group(0) @binding(2) var<storage, read> tf_lut: array<vec4<f32>>;

@@ -6,6 +6,12 @@
 // ENV_DIRECTIONS directions to the environment (channel light_count). It depends on the
 // opacity, the density scale and the lights only, never on the camera or the colours.
 
+#import common
+#import volume
+#import scene
+#import macrocell
+#import march
+
 struct PreviewParams {
     light_dims: vec3<u32>,
     // light_count + ENV_CHANNELS.

@@ -4,6 +4,8 @@
 // channels hold ENV_DIRECTIONS Fibonacci-sphere directions' mean and first moment. Run once per opacity, density or
 // light edit; camera moves and colour edits reuse it.
 
+#import preview_common
+
 const ENV_DIRECTIONS: u32 = 8u;
 
 // Transmittance from p along dir over at most t_max (march.wgsl): the midpoint rule at half a

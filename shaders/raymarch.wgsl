@@ -6,6 +6,13 @@
 // the march, so an absorbing-only medium is noise-free up to the jitter of the step.
 // Rust twin: server/engine/src/passes/raymarch.rs.
 
+#import common
+#import volume
+#import scene
+#import macrocell
+#import march
+#import lights
+
 @group(0) @binding(0) var<uniform> scene: SceneUniforms;
 @group(0) @binding(1) var volume_tex: texture_3d<f32>;
 @group(0) @binding(2) var<storage, read> tf_lut: array<vec4<f32>>;

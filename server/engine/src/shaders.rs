@@ -1,5 +1,11 @@
-//! WGSL sources: one file per pass under `shaders/`, composed with the shared pieces it uses
-//! (WGSL has no includes; module-scope declarations are order independent).
+//! WGSL sources: one file per pass under `shaders/`, composed with the shared pieces it
+//! imports (WGSL has no includes; module-scope declarations are order independent).
+//!
+//! - A file states what it needs with `#import <name>` lines (the name of another file under
+//!   `shaders/`, without `.wgsl`); `compose` puts every imported file once, before the first
+//!   file that imports it, and drops the `#import` lines.
+//! - An entry file is a pass; its composed source is what the pipeline compiles and what the
+//!   naga tests validate (`tests/shaders.rs`).
 
 pub const COMMON: &str = include_str!("../../../shaders/common.wgsl");
 pub const VOLUME: &str = include_str!("../../../shaders/volume.wgsl");
@@ -31,58 +37,115 @@ pub const PREVIEW_LIGHT: &str = include_str!("../../../shaders/preview_light.wgs
 pub const PREVIEW_VIEW: &str = include_str!("../../../shaders/preview_view.wgsl");
 pub const TONEMAP: &str = include_str!("../../../shaders/tonemap.wgsl");
 
-/// The raymarch pass with its shared pieces.
-pub fn raymarch() -> String {
-    [COMMON, VOLUME, SCENE, MACROCELL, MARCH, LIGHTS, RAYMARCH].concat()
+/// Every WGSL file by its name under `shaders/`.
+const FILES: &[(&str, &str)] = &[
+    ("common", COMMON),
+    ("volume", VOLUME),
+    ("scene", SCENE),
+    ("lights", LIGHTS),
+    ("macrocell", MACROCELL),
+    ("tracking", TRACKING),
+    ("path", PATH),
+    ("march", MARCH),
+    ("manylight_common", MANYLIGHT_COMMON),
+    ("manylight_vls", MANYLIGHT_VLS),
+    ("manylight_avsm", MANYLIGHT_AVSM),
+    ("manylight_gather", MANYLIGHT_GATHER),
+    ("raymarch", RAYMARCH),
+    ("pathtrace", PATHTRACE),
+    ("photon_common", PHOTON_COMMON),
+    ("photon_trace", PHOTON_TRACE),
+    ("photon_grid", PHOTON_GRID),
+    ("photon_gather", PHOTON_GATHER),
+    ("photon_scatter", PHOTON_SCATTER),
+    ("irradiance_common", IRRADIANCE_COMMON),
+    ("irradiance_render", IRRADIANCE_RENDER),
+    ("irradiance_create", IRRADIANCE_CREATE),
+    ("irradiance_requests", IRRADIANCE_REQUESTS),
+    ("irradiance_update", IRRADIANCE_UPDATE),
+    ("irradiance_priority", IRRADIANCE_PRIORITY),
+    ("preview_common", PREVIEW_COMMON),
+    ("preview_light", PREVIEW_LIGHT),
+    ("preview_view", PREVIEW_VIEW),
+    ("tonemap", TONEMAP),
+];
+
+/// The `#import` directive.
+const IMPORT: &str = "#import ";
+
+/// A file's imports, in order.
+pub fn imports(source: &str) -> impl Iterator<Item = &str> {
+    source
+        .lines()
+        .filter_map(|l| l.trim_start().strip_prefix(IMPORT))
+        .map(str::trim)
 }
 
-/// The path tracer with its shared pieces.
+/// `entry` with everything it imports, each file once, imports first.
+///
+/// Panics on an unknown name or an import circle: the sources are part of the binary, and
+/// `tests/shaders.rs` composes every entry.
+pub fn compose(entry: &str) -> String {
+    fn visit(name: &str, path: &mut Vec<String>, done: &mut Vec<String>, out: &mut String) {
+        if done.iter().any(|d| d == name) {
+            return;
+        }
+        assert!(
+            !path.iter().any(|p| p == name),
+            "WGSL import circle: {} → {name}",
+            path.join(" → ")
+        );
+        let source = FILES
+            .iter()
+            .find(|(n, _)| *n == name)
+            .map(|(_, s)| *s)
+            .unwrap_or_else(|| {
+                panic!(
+                    "WGSL import of unknown file `{name}` ({})",
+                    path.join(" → ")
+                )
+            });
+        path.push(name.to_owned());
+        for import in imports(source) {
+            visit(import, path, done, out);
+        }
+        path.pop();
+        for line in source.lines() {
+            if !line.trim_start().starts_with(IMPORT) {
+                out.push_str(line);
+                out.push('\n');
+            }
+        }
+        done.push(name.to_owned());
+    }
+    let mut out = String::new();
+    visit(entry, &mut Vec::new(), &mut Vec::new(), &mut out);
+    out
+}
+
+/// The raymarch pass.
+pub fn raymarch() -> String {
+    compose("raymarch")
+}
+
+/// The path tracer.
 pub fn pathtrace() -> String {
-    [
-        COMMON, VOLUME, SCENE, MACROCELL, TRACKING, LIGHTS, PATH, PATHTRACE,
-    ]
-    .concat()
+    compose("pathtrace")
 }
 
 /// `manylight`, pass 1: virtual lights by random walks from the lights.
 pub fn manylight_vls() -> String {
-    [
-        COMMON,
-        VOLUME,
-        SCENE,
-        MACROCELL,
-        TRACKING,
-        MANYLIGHT_COMMON,
-        MANYLIGHT_VLS,
-    ]
-    .concat()
+    compose("manylight_vls")
 }
 
 /// `manylight`, pass 2: one adaptive volumetric shadow map per virtual light.
 pub fn manylight_avsm() -> String {
-    [
-        COMMON,
-        VOLUME,
-        SCENE,
-        MACROCELL,
-        MANYLIGHT_COMMON,
-        MANYLIGHT_AVSM,
-    ]
-    .concat()
+    compose("manylight_avsm")
 }
 
 /// `manylight`, pass 3: multiple scattering gathered from the virtual lights.
 pub fn manylight_gather() -> String {
-    [
-        COMMON,
-        VOLUME,
-        SCENE,
-        MACROCELL,
-        MARCH,
-        MANYLIGHT_COMMON,
-        MANYLIGHT_GATHER,
-    ]
-    .concat()
+    compose("manylight_gather")
 }
 
 /// Photon tracing (technique `photon`).
@@ -106,38 +169,26 @@ pub fn photon_scatter() -> String {
     [COMMON, VOLUME, SCENE, PHOTON_COMMON, PHOTON_SCATTER].concat()
 }
 
-/// The passes of technique `irradiance`: each is the shared pieces, the technique's common
-/// declarations and the pass (`IRRADIANCE_RENDER`, `_CREATE`, `_REQUESTS`, `_UPDATE`,
-/// `_PRIORITY`).
+/// The passes of technique `irradiance`: `pass` is one of its entry sources
+/// (`IRRADIANCE_RENDER`, `_CREATE`, `_REQUESTS`, `_UPDATE`, `_PRIORITY`), composed with what it
+/// imports.
 pub fn irradiance(pass: &str) -> String {
-    [
-        COMMON,
-        VOLUME,
-        SCENE,
-        MACROCELL,
-        TRACKING,
-        MARCH,
-        LIGHTS,
-        PATH,
-        IRRADIANCE_COMMON,
-        pass,
-    ]
-    .concat()
+    compose(entry_name(pass))
 }
 
 /// The interactive preview's passes (`PREVIEW_LIGHT`: the light volume; `PREVIEW_VIEW`: the
-/// composited view rays), each with the shared pieces and the preview's bindings.
+/// composited view rays), composed with what they import.
 pub fn preview(pass: &str) -> String {
-    [
-        COMMON,
-        VOLUME,
-        SCENE,
-        MACROCELL,
-        MARCH,
-        PREVIEW_COMMON,
-        pass,
-    ]
-    .concat()
+    compose(entry_name(pass))
+}
+
+/// The name of a file given by its source (the `pub const`s above).
+fn entry_name(source: &str) -> &'static str {
+    FILES
+        .iter()
+        .find(|(_, s)| *s == source)
+        .map(|(n, _)| *n)
+        .unwrap_or_else(|| panic!("not a WGSL file of shaders/"))
 }
 
 pub fn tonemap() -> String {

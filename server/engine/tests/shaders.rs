@@ -30,6 +30,36 @@ fn every_composed_shader_validates() {
 }
 
 #[test]
+fn imports_compose_each_file_once_before_its_importers() {
+    let source = shaders::compose("irradiance_render");
+    assert!(!source.contains("#import"), "import lines are dropped");
+    // `common` is imported by several pieces of this pass and appears once.
+    let first_line = shaders::COMMON.lines().next().unwrap();
+    assert_eq!(source.matches(first_line).count(), 1);
+    // Imports come before the file that imports them.
+    let render_line = shaders::IRRADIANCE_RENDER
+        .lines()
+        .find(|l| !l.is_empty() && !l.starts_with("//") && !l.starts_with("#import"))
+        .unwrap();
+    let common_at = source.find(first_line).unwrap();
+    let irradiance_common_at = source
+        .find(shaders::IRRADIANCE_COMMON.lines().next().unwrap())
+        .unwrap();
+    let render_at = source.find(render_line).unwrap();
+    assert!(common_at < irradiance_common_at && irradiance_common_at < render_at);
+    assert_eq!(
+        shaders::imports(shaders::IRRADIANCE_RENDER).collect::<Vec<_>>(),
+        vec!["irradiance_common"]
+    );
+}
+
+#[test]
+#[should_panic(expected = "unknown file")]
+fn an_unknown_import_is_refused() {
+    shaders::compose("no_such_shader");
+}
+
+#[test]
 fn every_wgsl_file_is_part_of_a_validated_shader() {
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shaders");
     let composed: Vec<String> = shaders::all().into_iter().map(|(_, s)| s).collect();
@@ -37,7 +67,13 @@ fn every_wgsl_file_is_part_of_a_validated_shader() {
     for entry in std::fs::read_dir(&dir).unwrap() {
         let path = entry.unwrap().path();
         if path.extension().is_some_and(|e| e == "wgsl") {
-            let text = std::fs::read_to_string(&path).unwrap();
+            // A file appears in the composed source without its `#import` lines.
+            let text: String = std::fs::read_to_string(&path)
+                .unwrap()
+                .lines()
+                .filter(|l| !l.trim_start().starts_with("#import "))
+                .flat_map(|l| [l, "\n"])
+                .collect();
             assert!(
                 composed.iter().any(|s| s.contains(&text)),
                 "{} is not used by any shader in shaders::all()",
