@@ -173,5 +173,14 @@ fn no_import_circles_in_the_protocol() {
 #[test]
 fn no_import_circles_in_the_benches() {
     let found = circles(&graph(&server_crate("bench/src")));
+    assert!(
+        found.is_empty(),
+        "modules that import each other: {found:?}"
+    );
+}
+
+#[test]
+fn no_import_circles_in_the_engine() {
+    let found = circles(&graph(&server_crate("server/engine/src")));
     assert!(found.is_empty(), "modules that import each other: {found:?}");
 }

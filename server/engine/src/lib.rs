@@ -19,6 +19,7 @@ pub mod technique;
 pub mod technique_options;
 pub mod techniques;
 pub mod tf;
+pub mod validate;
 pub mod volume;
 
 use std::sync::Arc;

@@ -5,7 +5,6 @@ use voxlight_protocol::{
     Viewport, default_lights,
 };
 
-use crate::camera::CameraBasis;
 
 /// Everything a technique needs besides the volume.
 #[derive(Debug, Clone, PartialEq)]
@@ -128,18 +127,6 @@ pub fn validate_viewport(viewport: &Viewport) -> Result<(), String> {
         ));
     }
     Ok(())
-}
-
-impl Scene {
-    /// Checks every part of the scene.
-    pub fn validate(&self) -> Result<(), String> {
-        CameraBasis::new(&self.camera)?;
-        crate::tf::validate(&self.tf)?;
-        validate_lights(&self.lights)?;
-        validate_params(&self.params)?;
-        validate_viewport(&self.viewport)?;
-        crate::technique_options::validate(&self.technique_options)
-    }
 }
 
 #[cfg(test)]

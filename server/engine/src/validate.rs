@@ -1,0 +1,18 @@
+//! Whole-scene checks: every part of a [`Scene`], its technique options included. Apart from
+//! `scene.rs` because the options are checked against the techniques, which build on the
+//! scene (`scene` → `technique_options` → `techniques` → `scene` would be a circle).
+
+use crate::camera::CameraBasis;
+use crate::scene::{Scene, validate_lights, validate_params, validate_viewport};
+
+impl Scene {
+    /// Checks every part of the scene.
+    pub fn validate(&self) -> Result<(), String> {
+        CameraBasis::new(&self.camera)?;
+        crate::tf::validate(&self.tf)?;
+        validate_lights(&self.lights)?;
+        validate_params(&self.params)?;
+        validate_viewport(&self.viewport)?;
+        crate::technique_options::validate(&self.technique_options)
+    }
+}
