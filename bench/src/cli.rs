@@ -71,14 +71,9 @@ pub struct SizesArgs {
 
 #[derive(Debug, Args)]
 pub struct PreviewVtkArgs {
+    /// `--iterations`: timed frames per size and divisor.
     #[command(flatten)]
-    pub common: Common,
-    /// Image edges to measure.
-    #[arg(long, value_delimiter = ',', default_value = "512,1024")]
-    pub sizes: Vec<u32>,
-    /// Timed frames per size and divisor.
-    #[arg(long, default_value_t = 8)]
-    pub iterations: u32,
+    pub sizes: SizesArgs,
     /// VTK baseline datasets (`bonsai`, `ct`).
     #[arg(long, value_delimiter = ',', default_value = "bonsai,ct")]
     pub datasets: Vec<String>,
@@ -331,7 +326,7 @@ impl Bench {
     fn common(&self) -> &Common {
         match self {
             Bench::Raymarch(a) | Bench::Preview(a) => &a.common,
-            Bench::PreviewVtk(a) => &a.common,
+            Bench::PreviewVtk(a) => &a.sizes.common,
             Bench::TfEdit(a) => &a.common,
             Bench::Manylight(a) => &a.common,
             Bench::Convergence(a) => &a.common,
@@ -358,8 +353,8 @@ pub fn run(bench: &Bench) -> anyhow::Result<()> {
         })?,
         Bench::PreviewVtk(a) => vtk::preview_vtk(&vtk::PreviewVtkBench {
             data_dir: data.as_deref(),
-            sizes: &a.sizes,
-            frames: a.iterations.max(1),
+            sizes: &a.sizes.sizes,
+            frames: a.sizes.iterations.max(1),
             datasets: &a.datasets,
         })?,
         Bench::TfEdit(a) => tf_edit(a, data.as_deref())?,

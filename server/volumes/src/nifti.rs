@@ -369,15 +369,7 @@ pub(crate) fn load_nifti_with(
     }
     fmt.push(')');
     Ok((
-        RawVolume {
-            dims,
-            spacing,
-            samples,
-            units: String::new(),
-            modality: String::new(),
-            format: fmt,
-            warnings,
-        },
+        RawVolume::unlabelled(dims, spacing, samples, fmt, warnings),
         streamed,
     ))
 }

@@ -558,15 +558,13 @@ pub(crate) fn load_nrrd_with(
         String::new()
     };
     Ok((
-        RawVolume {
+        RawVolume::unlabelled(
             dims,
             spacing,
             samples,
-            units: String::new(),
-            modality: String::new(),
-            format: format!("NRRD ({enc_name}, {ty}{endian_s}, {attached})"),
+            format!("NRRD ({enc_name}, {ty}{endian_s}, {attached})"),
             warnings,
-        },
+        ),
         streamed,
     ))
 }

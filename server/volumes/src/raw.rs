@@ -229,6 +229,25 @@ impl fmt::Debug for RawVolume {
 }
 
 impl RawVolume {
+    /// A volume whose file names no units or modality (NRRD, NIfTI, VTI).
+    pub(crate) fn unlabelled(
+        dims: [u32; 3],
+        spacing: [f32; 3],
+        samples: Samples,
+        format: String,
+        warnings: Vec<String>,
+    ) -> Self {
+        RawVolume {
+            dims,
+            spacing,
+            samples,
+            units: String::new(),
+            modality: String::new(),
+            format,
+            warnings,
+        }
+    }
+
     /// Number of voxels (`nx*ny*nz`).
     pub fn voxel_count(&self) -> usize {
         self.dims.iter().map(|&d| d as usize).product()

@@ -684,15 +684,7 @@ pub(crate) fn load_vti_with(
         }
     );
     Ok((
-        RawVolume {
-            dims,
-            spacing,
-            samples,
-            units: String::new(),
-            modality: String::new(),
-            format: fmt,
-            warnings,
-        },
+        RawVolume::unlabelled(dims, spacing, samples, fmt, warnings),
         streamed,
     ))
 }
