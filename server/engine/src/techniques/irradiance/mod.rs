@@ -1227,13 +1227,7 @@ impl Irradiance {
                 update_rounds = if self.mirror.len() >= 2 { u } else { 0 };
             } else {
                 let schedule = |credit: &mut f64, share: f64, round: Option<f64>, most: u32| {
-                    let round = round.unwrap_or(share * frame_time).max(1e-9);
-                    // A slow round (a first dispatch, a busy machine) delays the next ones by
-                    // at most two frames' shares.
-                    let owed = credit.max(-2.0 * share * frame_time) + share * frame_time;
-                    *credit = owed.min((share * frame_time).max(round));
-                    let rounds = (*credit / round).floor().clamp(0.0, most as f64) as u32;
-                    (rounds, rounds as f64 * round)
+                    rounds_owed(credit, share * frame_time, round, most)
                 };
                 if self.pending > 0 {
                     let round = self.request_round_cost.map(|c| c * self.pending as f64);
@@ -1270,22 +1264,25 @@ impl Irradiance {
         self.write_params(engine, scene);
         self.base.encode_uniforms(engine, scene)?;
 
-        // Dispatch descriptors: render chunks first, then rounds.
-        let mut infos: Vec<DispatchInfo> = Vec::new();
-        let mut list: Vec<u32> = Vec::new();
-        let mut render_dispatches = Vec::new();
-        for pass in &passes {
-            for chunk in pass.chunks(MAX_WORKGROUPS) {
-                render_dispatches.push((infos.len() as u32, chunk.len() as u32));
-                infos.push(DispatchInfo {
-                    first: list.len() as u32,
-                    count: chunk.len() as u32,
-                    round: 0,
-                    pad0: 0,
-                });
-                list.extend_from_slice(chunk);
-            }
-        }
+        let plan = DispatchPlan::new(
+            &passes,
+            PlannedRounds {
+                create: create_rounds,
+                pending: self.pending,
+                update: update_rounds,
+                block_count: self.layout.block_count,
+                frame: self.frame,
+                priorities: self.config.priorities,
+            },
+        )?;
+        let DispatchPlan {
+            infos,
+            list,
+            render_dispatches,
+            create_first,
+            update_first,
+            priority_first,
+        } = plan;
         let blocks_rendered = list.len() as u32;
         let mut times = FrameTimes {
             blocks_rendered,
@@ -1293,42 +1290,6 @@ impl Irradiance {
         };
         let queue = &engine.gpu.queue;
         queue.write_buffer(&self.pixels.blocks, 0, bytemuck::cast_slice(&list));
-
-        let create_first = infos.len() as u32;
-        for r in 0..create_rounds.min(MAX_CREATE_ROUNDS) {
-            infos.push(DispatchInfo {
-                first: 0,
-                count: self.pending,
-                round: r,
-                pad0: 0,
-            });
-        }
-        let update_first = infos.len() as u32;
-        for r in 0..update_rounds.min(MAX_UPDATE_ROUNDS) {
-            infos.push(DispatchInfo {
-                first: 0,
-                count: self.layout.block_count,
-                round: self.frame.wrapping_mul(MAX_UPDATE_ROUNDS) + r,
-                pad0: 0,
-            });
-        }
-        let priority_first = infos.len() as u32;
-        if self.config.priorities {
-            for first in (0..n).step_by(MAX_WORKGROUPS) {
-                infos.push(DispatchInfo {
-                    first: first as u32,
-                    count: (n - first).min(MAX_WORKGROUPS) as u32,
-                    round: 0,
-                    pad0: 0,
-                });
-            }
-        }
-        if infos.len() > DISPATCH_SLOTS as usize {
-            return Err(EngineError::Gpu(format!(
-                "irradiance frame needs {} dispatches, has {DISPATCH_SLOTS}",
-                infos.len()
-            )));
-        }
         let mut padded = vec![0u8; infos.len() * DISPATCH_STRIDE as usize];
         for (i, info) in infos.iter().enumerate() {
             let at = i * DISPATCH_STRIDE as usize;
@@ -1931,9 +1892,183 @@ impl Technique for Irradiance {
     }
 }
 
+/// Rounds of one cache procedure this frame: the time owed to it (`credit`, carried from frame
+/// to frame, plus this frame's `share` in seconds, capped at one share or one round) spent in
+/// whole rounds of `round` seconds (this frame's share when not measured yet), at most `most`.
+/// Returns the rounds and the time they are planned to take; `frame` takes their measured time
+/// off the credit. A slow round (a first dispatch, a busy machine) delays the next ones by at
+/// most two frames' shares.
+fn rounds_owed(credit: &mut f64, share: f64, round: Option<f64>, most: u32) -> (u32, f64) {
+    let round = round.unwrap_or(share).max(1e-9);
+    let owed = credit.max(-2.0 * share) + share;
+    *credit = owed.min(share.max(round));
+    let rounds = (*credit / round).floor().clamp(0.0, most as f64) as u32;
+    (rounds, rounds as f64 * round)
+}
+
+/// The rounds a frame runs besides rendering (`frame` numbers the update rounds).
+#[derive(Debug, Clone, Copy)]
+struct PlannedRounds {
+    create: u32,
+    pending: u32,
+    update: u32,
+    block_count: u32,
+    frame: u32,
+    priorities: bool,
+}
+
+/// One frame's dispatches, as the passes read them from the dispatch buffer: render chunks
+/// (of the block list) first, then the creation rounds, the update rounds and the priority
+/// chunks, each a slot of `infos`.
+#[derive(Debug, PartialEq)]
+struct DispatchPlan {
+    infos: Vec<DispatchInfo>,
+    /// The blocks to render, in order (render chunks index into it).
+    list: Vec<u32>,
+    /// (slot, workgroups) of each render dispatch.
+    render_dispatches: Vec<(u32, u32)>,
+    create_first: u32,
+    update_first: u32,
+    priority_first: u32,
+}
+
+impl DispatchPlan {
+    fn new(passes: &[Vec<u32>], rounds: PlannedRounds) -> Result<Self, EngineError> {
+        let mut infos: Vec<DispatchInfo> = Vec::new();
+        let mut list: Vec<u32> = Vec::new();
+        let mut render_dispatches = Vec::new();
+        for pass in passes {
+            for chunk in pass.chunks(MAX_WORKGROUPS) {
+                render_dispatches.push((infos.len() as u32, chunk.len() as u32));
+                infos.push(DispatchInfo {
+                    first: list.len() as u32,
+                    count: chunk.len() as u32,
+                    round: 0,
+                    pad0: 0,
+                });
+                list.extend_from_slice(chunk);
+            }
+        }
+        let create_first = infos.len() as u32;
+        for r in 0..rounds.create.min(MAX_CREATE_ROUNDS) {
+            infos.push(DispatchInfo {
+                first: 0,
+                count: rounds.pending,
+                round: r,
+                pad0: 0,
+            });
+        }
+        let update_first = infos.len() as u32;
+        for r in 0..rounds.update.min(MAX_UPDATE_ROUNDS) {
+            infos.push(DispatchInfo {
+                first: 0,
+                count: rounds.block_count,
+                round: rounds.frame.wrapping_mul(MAX_UPDATE_ROUNDS) + r,
+                pad0: 0,
+            });
+        }
+        let priority_first = infos.len() as u32;
+        if rounds.priorities {
+            let n = rounds.block_count as usize;
+            for first in (0..n).step_by(MAX_WORKGROUPS) {
+                infos.push(DispatchInfo {
+                    first: first as u32,
+                    count: (n - first).min(MAX_WORKGROUPS) as u32,
+                    round: 0,
+                    pad0: 0,
+                });
+            }
+        }
+        if infos.len() > DISPATCH_SLOTS as usize {
+            return Err(EngineError::Gpu(format!(
+                "irradiance frame needs {} dispatches, has {DISPATCH_SLOTS}",
+                infos.len()
+            )));
+        }
+        Ok(DispatchPlan {
+            infos,
+            list,
+            render_dispatches,
+            create_first,
+            update_first,
+            priority_first,
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn rounds_owed_spends_the_share_in_whole_rounds() {
+        // A 10 ms share and 4 ms rounds: 2 rounds now; the credit holds the share until
+        // `frame` takes the rounds' measured time off it.
+        let mut credit = 0.0;
+        let (rounds, planned) = rounds_owed(&mut credit, 0.010, Some(0.004), 48);
+        assert_eq!(rounds, 2);
+        assert!((planned - 0.008).abs() < 1e-12);
+        assert!((credit - 0.010).abs() < 1e-12, "credit {credit}");
+        // A slow round (credit far below zero) delays the next ones by two shares at most.
+        let mut credit = -1.0;
+        let (rounds, _) = rounds_owed(&mut credit, 0.010, Some(0.004), 48);
+        assert_eq!(rounds, 0);
+        assert!((credit - -0.010).abs() < 1e-12, "credit {credit}");
+        // Never more than `most`, and a round not measured yet costs the share.
+        let mut credit = 0.0;
+        assert_eq!(rounds_owed(&mut credit, 0.010, Some(1e-6), 3).0, 3);
+        let mut credit = 0.0;
+        assert_eq!(rounds_owed(&mut credit, 0.010, None, 48).0, 1);
+    }
+
+    fn rounds(create: u32, update: u32, block_count: u32, priorities: bool) -> PlannedRounds {
+        PlannedRounds {
+            create,
+            pending: 7,
+            update,
+            block_count,
+            frame: 3,
+            priorities,
+        }
+    }
+
+    #[test]
+    fn the_dispatch_plan_renders_first_then_rounds_then_priorities() {
+        let passes = vec![vec![4, 5, 6], vec![1, 2]];
+        let plan = DispatchPlan::new(&passes, rounds(2, 1, 9, true)).expect("plan");
+        assert_eq!(plan.list, vec![4, 5, 6, 1, 2]);
+        assert_eq!(plan.render_dispatches, vec![(0, 3), (1, 2)]);
+        assert_eq!((plan.infos[1].first, plan.infos[1].count), (3, 2));
+        assert_eq!(
+            (plan.create_first, plan.update_first, plan.priority_first),
+            (2, 4, 5)
+        );
+        assert_eq!(
+            (
+                plan.infos[2].count,
+                plan.infos[2].round,
+                plan.infos[3].round
+            ),
+            (7, 0, 1)
+        );
+        // Update rounds are numbered by frame, so each frame updates other entries.
+        assert_eq!(plan.infos[4].round, 3 * MAX_UPDATE_ROUNDS);
+        assert_eq!((plan.infos[5].first, plan.infos[5].count), (0, 9));
+        assert_eq!(plan.infos.len(), 6);
+    }
+
+    #[test]
+    fn the_dispatch_plan_chunks_large_passes_and_refuses_too_many_slots() {
+        let big: Vec<u32> = (0..(MAX_WORKGROUPS as u32 + 10)).collect();
+        let plan = DispatchPlan::new(&[big], rounds(0, 0, 4, false)).expect("plan");
+        assert_eq!(
+            plan.render_dispatches,
+            vec![(0, MAX_WORKGROUPS as u32), (1, 10)]
+        );
+        assert_eq!(plan.infos[1].first, MAX_WORKGROUPS as u32);
+        let many: Vec<Vec<u32>> = (0..DISPATCH_SLOTS).map(|i| vec![i]).collect();
+        assert!(DispatchPlan::new(&many, rounds(1, 0, 4, false)).is_err());
+    }
 
     #[test]
     fn shuffled_blocks_are_a_permutation_out_of_raster_order() {
