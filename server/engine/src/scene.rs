@@ -5,7 +5,6 @@ use voxlight_protocol::{
     Viewport, default_lights,
 };
 
-
 /// Everything a technique needs besides the volume.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Scene {
