@@ -734,9 +734,9 @@ fn super_large_but_accepted_by_the_transport() -> usize {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn an_empty_tf_is_a_transparent_volume_not_an_error() {
-    // docs/protocol.md: "No points means fully transparent" (the web editor can delete every
-    // point). It is accepted, echoed, and renders the environment alone.
+async fn an_empty_tf_is_refused_and_one_transparent_point_shows_the_environment() {
+    // Issue 22: an empty TF is malformed (`bad_value`, nothing changes); one point of opacity
+    // 0 is how a client makes the volume transparent, and renders the environment alone.
     let server = TestServer::start(None).await.unwrap();
     let mut client = Client::connect(&server.ws_url()).await.unwrap();
     let welcome = client.hello(None, 32, 32).await.unwrap();
@@ -751,10 +751,28 @@ async fn an_empty_tf_is_a_transparent_volume_not_an_error() {
         .send_json(json!({"type": "tf", "points": []}))
         .await
         .unwrap();
+    let refused = client
+        .text_where(|m| matches!(m, ServerMessage::Error { .. }))
+        .await
+        .unwrap();
+    assert!(
+        matches!(
+            refused,
+            ServerMessage::Error {
+                code: ErrorCode::BadValue,
+                ..
+            }
+        ),
+        "{refused:?}"
+    );
+    client
+        .send_json(json!({"type": "tf", "points": [{"value": 0.5, "color": [1.0, 1.0, 1.0], "opacity": 0.0}]}))
+        .await
+        .unwrap();
     let echoed = client
         .text_where(|m| {
             matches!(m, ServerMessage::Edited { edit, .. }
-                if matches!(**edit, voxlight_protocol::ClientMessage::Tf(ref tf) if tf.points.is_empty()))
+                if matches!(**edit, voxlight_protocol::ClientMessage::Tf(ref tf) if tf.points.len() == 1))
         })
         .await
         .unwrap();
@@ -768,7 +786,7 @@ async fn an_empty_tf_is_a_transparent_volume_not_an_error() {
     assert_eq!(
         frame.distinct_colors(),
         1,
-        "an empty TF shows the environment only"
+        "a transparent TF shows the environment only"
     );
     // Every technique takes it (nothing to scatter from, no lights inside): converged
     // pictures of the environment, no error.

@@ -258,7 +258,9 @@ export class TfEditor extends EventTarget {
   }
 
   _remove(i) {
-    if (i < 0 || i >= this.pts.length) return;
+    // The last point stays: the server refuses an empty transfer function (bad_value); drag
+    // its opacity to 0 for a transparent volume.
+    if (i < 0 || i >= this.pts.length || this.pts.length <= 1) return;
     this.pts.splice(i, 1);
     this.selected = -1;
     this.drag = null;

@@ -54,6 +54,12 @@ pub fn validate_message(message: &ClientMessage) -> Result<(), Reply> {
             }
         }
         ClientMessage::Camera(camera) => CameraBasis::new(camera).map(|_| ()).map_err(Reply::bad),
+        // An empty list would hide the volume without a word: a client that wants that sends
+        // one point of opacity 0 (issue 22 counts an empty TF as malformed).
+        ClientMessage::Tf(tf) if tf.points.is_empty() => Err(Reply::bad(
+            "a transfer function needs at least one point (one point of opacity 0 makes the \
+             volume transparent)",
+        )),
         ClientMessage::Tf(tf) => voxlight_engine::tf::validate(tf).map_err(Reply::bad),
         ClientMessage::Lights { lights } => validate_lights(lights).map_err(Reply::bad),
         ClientMessage::Viewport(viewport) => validate_viewport(viewport).map_err(Reply::bad),
@@ -483,6 +489,21 @@ mod tests {
             .expect("an edit");
         assert_eq!(change, Change::Lights);
         assert!(s.lights.is_empty());
+    }
+
+    #[test]
+    fn an_empty_tf_is_refused_one_transparent_point_is_not() {
+        let empty = ClientMessage::Tf(TransferFunction { points: vec![] });
+        let reply = validate_message(&empty).expect_err("empty TF");
+        assert_eq!(reply.code, ErrorCode::BadValue);
+        let transparent = ClientMessage::Tf(TransferFunction {
+            points: vec![TfPoint {
+                value: 0.5,
+                color: [1.0; 3],
+                opacity: 0.0,
+            }],
+        });
+        assert!(validate_message(&transparent).is_ok());
     }
 
     #[test]
