@@ -72,8 +72,35 @@ struct PhotonUniforms {
     // The first list slot of this gather dispatch: a round runs as parts, one submission each,
     // so that a long gather gives way between them (techniques/photon: GatherInProgress).
     round_first: u32,
-    pad1: u32,
-    pad2: u32,
+    // Russian roulette: from interaction `roulette_from` on, a path goes on to its next
+    // interaction with probability `roulette_survival` (a constant, not the albedo: so whether
+    // a path survives does not depend on the TF, and a recoloured record's path keeps its
+    // length) and its power is divided by it. survival >= 1: off.
+    roulette_survival: f32,
+    roulette_from: u32,
+    // Progressive radius reduction (Knaus & Zwicker 2011): the photons of pass i are gathered
+    // with their own radius r_i <= radius (the grid's cell edge), r_i³ = r_0³ · Π_{k<i} (k + α)
+    // / (k + 1). Entry i / 2 holds pass i's (r_i², (r_0 / r_i)³) in .xy (even i) or .zw (odd
+    // i); passes past the table use its last entry. The picture is the mean of the passes'
+    // estimates, so both noise and kernel blur fall as passes are added.
+    pass_kernels: array<vec4<f32>, PASS_KERNEL_ENTRIES>,
+}
+
+const PASS_KERNEL_ENTRIES: u32 = 128u;
+
+// Pass `pass_index`'s kernel: (r², normalisation relative to radius's).
+fn pass_kernel(pass_index: u32) -> vec2<f32> {
+    let i = min(pass_index, 2u * PASS_KERNEL_ENTRIES - 1u);
+    let e = photon.pass_kernels[i / 2u];
+    if (i % 2u == 0u) {
+        return e.xy;
+    }
+    return e.zw;
+}
+
+// The pass that traced record `index`.
+fn record_pass(index: u32) -> u32 {
+    return index / (photon.bounces * photon.photons_per_pass);
 }
 
 // A stored photon interaction (a real collision): where, the direction it arrived from (travel
@@ -122,7 +149,8 @@ struct PhotonChange {
     power: vec3<f32>,
     kind: u32,
     direction: vec3<f32>,
-    pad0: u32,
+    // The pass that traced the record (its gather radius: pass_kernel).
+    pass_index: u32,
     old_power: vec3<f32>,
     pad1: u32,
 }

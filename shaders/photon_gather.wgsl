@@ -250,6 +250,7 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
                 var direction: vec3<f32>;
                 var kind = CHANGE_ADD;
                 var old_power = vec3<f32>(0.0);
+                var pass_index: u32;
                 if (grid == GRID_CHANGES) {
                     let change = changes[item];
                     position = change.position;
@@ -257,21 +258,24 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
                     direction = change.direction;
                     kind = change.kind;
                     old_power = change.old_power;
+                    pass_index = change.pass_index;
                 } else {
                     let rec = records[item];
                     position = rec.position;
                     power = rec.power;
                     direction = rec.direction;
+                    pass_index = record_pass(item);
                 }
                 let d = x - position;
                 let d2 = dot(d, d);
-                if (d2 < r2) {
+                let kernel = pass_kernel(pass_index);
+                if (d2 < kernel.x) {
                     if (photon.census != 0u && grid == GRID_RECORDS) {
                         atomicAdd(&scatter[item], 1u);
                     }
                     // A replaced photon's two terms share this factor (same position and
                     // direction), so they are the very terms two separate visits would give.
-                    let s = weight * phase_hg(dot(direction, out_dir), scene.g) * (1.0 - d2 / r2);
+                    let s = weight * phase_hg(dot(direction, out_dir), scene.g) * (1.0 - d2 / kernel.x) * kernel.y;
                     var sum = accumulate(FixedSum(st.color_lo, st.color_hi), power * s, kind == CHANGE_SUBTRACT);
                     if (kind == CHANGE_REPLACE) {
                         sum = accumulate(sum, old_power * s, true);

@@ -254,7 +254,8 @@ fn scatter_changes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     }
     let change = changes[index];
     let p = change.position;
-    let r2 = photon.radius * photon.radius;
+    let kernel = pass_kernel(change.pass_index);
+    let r2 = kernel.x;
     let step = photon.gather_step;
     let box = change_pixels(p);
     if (!box.fits) {
@@ -327,7 +328,7 @@ fn scatter_changes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
                     sum = FixedSum(vec3<u32>(0u), vec3<u32>(0u));
                 }
                 // The gather's term (photon_gather.wgsl), factor for factor.
-                let factor = weight * phase * (1.0 - d2 / r2);
+                let factor = weight * phase * (1.0 - d2 / r2) * kernel.y;
                 sum = accumulate(sum, change.power * factor, change.kind == CHANGE_SUBTRACT);
                 if (change.kind == CHANGE_REPLACE) {
                     sum = accumulate(sum, change.old_power * factor, true);

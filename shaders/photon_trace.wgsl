@@ -68,10 +68,10 @@ fn same_record(a: PhotonRecord, b: PhotonRecord) -> bool {
 
 // Appends a version of a changed record to the change list (dropped past its capacity: the
 // host then sees COUNTER_CHANGES over it and regathers instead).
-fn append_change(r: PhotonRecord, kind: u32, old_power: vec3<f32>) {
+fn append_change(index: u32, r: PhotonRecord, kind: u32, old_power: vec3<f32>) {
     let slot = atomicAdd(&counters[COUNTER_CHANGES], 1u);
     if (slot < photon.change_capacity) {
-        changes[slot] = PhotonChange(r.position, r.cell, r.power, kind, r.direction, 0u, old_power, 0u);
+        changes[slot] = PhotonChange(r.position, r.cell, r.power, kind, r.direction, record_pass(index), old_power, 0u);
     }
 }
 
@@ -84,15 +84,15 @@ fn store_record(index: u32, record: PhotonRecord) {
             atomicAdd(&counters[COUNTER_CHANGED], 1u);
             if (old.cell != CELL_NONE && record.cell != CELL_NONE && same_place(old, record)) {
                 mark_spatial(record.position);
-                append_change(record, CHANGE_REPLACE, old.power);
+                append_change(index, record, CHANGE_REPLACE, old.power);
             } else {
                 if (old.cell != CELL_NONE) {
                     mark_spatial(old.position);
-                    append_change(old, CHANGE_SUBTRACT, vec3<f32>(0.0));
+                    append_change(index, old, CHANGE_SUBTRACT, vec3<f32>(0.0));
                 }
                 if (record.cell != CELL_NONE) {
                     mark_spatial(record.position);
-                    append_change(record, CHANGE_ADD, vec3<f32>(0.0));
+                    append_change(index, record, CHANGE_ADD, vec3<f32>(0.0));
                 }
             }
         }
@@ -225,7 +225,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
                 var rng = rng_new(scene.seed, p, 0u);
                 power_before = emit(&rng).power;
             }
-            let power = power_before * classify(data_at(r.position)).rgb;
+            let power = roulette_carry(power_before, u32(j)) * classify(data_at(r.position)).rgb;
             store_record(base + u32(j), PhotonRecord(r.position, r.cell, power, r.hist_lo, r.direction, r.hist_hi));
             power_before = power;
             j += 1;
@@ -276,6 +276,12 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
             if (all(power <= vec3<f32>(0.0))) {
                 break;
             }
+            if (roulette_applies(k)) {
+                if (rng_next(&rng) >= photon.roulette_survival) {
+                    break;
+                }
+                power = roulette_carry(power, k);
+            }
             let u1 = rng_next(&rng);
             let u2 = rng_next(&rng);
             dir = sample_hg(direction, scene.g, u1, u2);
@@ -325,6 +331,22 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         }
     }
     paths[p] = PhotonPath(count, hist.x, hist.y, collisions.x, collisions.y, 0u, 0u, 0u);
+}
+
+// Whether interaction k (k >= 1: a scattering) plays Russian roulette first (PhotonUniforms).
+fn roulette_applies(k: u32) -> bool {
+    return k >= max(photon.roulette_from, 1u) && photon.roulette_survival < 1.0;
+}
+
+// The power that goes on to interaction k, from the power of record k − 1: divided by the
+// survival probability where k played the roulette. The trace and an update's recolouring
+// both form a record's power as roulette_carry(previous, k) × albedo, the same operations,
+// so the same bits.
+fn roulette_carry(power: vec3<f32>, k: u32) -> vec3<f32> {
+    if (roulette_applies(k)) {
+        return power / photon.roulette_survival;
+    }
+    return power;
 }
 
 fn bounding_radius() -> f32 {

@@ -27,10 +27,12 @@ pub struct PhotonOptions {
     /// Passes the map holds; the picture converges after them.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub passes: Option<u32>,
-    /// Scattering events stored per photon path (1: single scattering).
+    /// Most scattering events of a photon path (1: single scattering); Russian roulette ends
+    /// most paths before it.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub bounces: Option<u32>,
-    /// Gather radius in world units (the volume's longest side is 1); 0: 2.5 voxel edges.
+    /// Gather radius of the first pass in world units (the volume's longest side is 1); 0: 1.5
+    /// voxel edges, at least 1/150 of the longest side. Later passes shrink it.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub radius: Option<f32>,
     /// View-ray segments per pixel (Vn).

@@ -30,7 +30,7 @@ pub fn validate(options: &TechniqueOptions) -> Result<(), String> {
     let p = &options.photon;
     in_range("photon.photons_per_pass", p.photons_per_pass, 1, 1 << 20)?;
     in_range("photon.passes", p.passes, 1, 256)?;
-    in_range("photon.bounces", p.bounces, 1, 16)?;
+    in_range("photon.bounces", p.bounces, 1, 64)?;
     in_range("photon.radius", p.radius, 0.0, 0.25)?;
     in_range("photon.segments", p.segments, 1, 32)?;
     let m = &options.manylight;

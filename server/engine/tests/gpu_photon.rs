@@ -392,7 +392,7 @@ fn camera_edit_keeps_photons_and_matches_a_full_recompute() {
 fn single_scattering_agrees_with_raymarch() {
     // A white-ish scattering ball lit by a directional light and the environment. With one
     // stored bounce the photon map estimates exactly what `raymarch` does (single scattering);
-    // it differs by kernel blur (radius 2.5 voxels) and noise. Mean radiance over the ball
+    // it differs by kernel blur (radius 1.5 voxels) and noise. Mean radiance over the ball
     // within 8%.
     let size = 48;
     let (_, volume) = sphere(48);
@@ -713,11 +713,11 @@ fn delta_scatter_capacity_and_overflow_still_equal_a_full_recompute() {
     });
     let defaults = params(Invalidation::DirtyCells);
     let segments = 40 * 40 * defaults.segments as u64;
-    // The slot map (4 bytes per segment) and room for a few hundred segments (a slot is 22
-    // words here): fewer than the edit's, but enough that the changes (about one per segment)
-    // are worth scattering.
+    // The slot map (4 bytes per segment) and room for about a hundred segments (a slot is 22
+    // words here): fewer than the edit's (~250 at the default radius of 1.5 voxels), but
+    // enough that the changes (about one per segment) are worth scattering.
     let few_slots = PhotonParams {
-        scatter_bytes: segments * 4 + 300 * 4 * 22,
+        scatter_bytes: segments * 4 + 100 * 4 * 22,
         ..defaults
     };
     let overflowing = PhotonParams {
@@ -931,4 +931,62 @@ fn gathers_in_parts_equal_a_full_recompute_bit_for_bit() {
     let full = full_recompute(&volume, &back, p);
     let state = photon.read_state(engine).expect("read");
     assert_eq!(first_difference(&state, &full), None);
+}
+
+/// Issue 25's consistency machinery under updates: long paths with Russian roulette (up to 12
+/// scatterings, roulette from the second) and four passes, each gathered with its own, shrinking
+/// radius (Knaus–Zwicker). Colour, mixed and opacity edits in a row still equal a full recompute
+/// bit for bit: the roulette never reads the TF, and every photon (also in the change list) is
+/// gathered with its own pass's radius.
+#[test]
+fn roulette_and_shrinking_radii_keep_updates_bit_exact() {
+    let volume = engine()
+        .upload_volume(&voxlight_volumes::phantom("cornell", 32).expect("cornell"))
+        .expect("upload");
+    let p = PhotonParams {
+        photons_per_pass: 2048,
+        max_passes: 4,
+        bounces: 12,
+        ..params(Invalidation::DirtyCells)
+    };
+    assert!(p.roulette_survival < 1.0 && p.radius_alpha < 1.0);
+    let mut s = cornell_scene(32, cornell_tf(|_, _, _| {}));
+    s.target_iterations = 4;
+    let mut photon = Photon::new(engine(), volume.clone(), &s, p).expect("photon");
+    converge(&mut photon, &s);
+    let edits = [
+        cornell_tf(|n, c, _| {
+            if n == "sphere" {
+                *c = [0.9, 0.1, 0.1];
+            }
+        }),
+        cornell_tf(|n, c, o| {
+            if n == "sphere" {
+                *c = [0.1, 0.9, 0.1];
+            }
+            if n == "tall block" {
+                *o *= 0.5;
+            }
+        }),
+        cornell_tf(|n, c, _| {
+            if n == "sphere" {
+                *c = [0.1, 0.9, 0.1];
+            }
+        }),
+    ];
+    for (i, tf) in edits.into_iter().enumerate() {
+        let change = Change::tf(&s.tf, &tf);
+        s.tf = tf;
+        photon.apply(engine(), &s, &change).expect("apply");
+        let inc = photon.read_state(engine()).expect("read");
+        let full = full_recompute(&volume, &s, p);
+        if let Some(diff) = first_difference(&inc, &full) {
+            panic!("edit {i}: incremental != full: {diff}");
+        }
+        let report = photon.last_update().expect("report");
+        assert!(
+            report.paths_retraced + report.paths_recoloured < report.paths,
+            "edit {i} redid every path: {report:?}"
+        );
+    }
 }

@@ -58,7 +58,7 @@ fn photon_structs_match_wgsl() {
                 emitter_count, spatial, round_input, round_budget, round_stride,
                 opacity_query_lo, opacity_query_hi, grid_pass, change_capacity,
                 record_capacity, collision_query_lo, collision_query_hi, scatter_capacity,
-                scatter_samples, census, round_first, pad1, pad2),
+                scatter_samples, census, round_first, roulette_survival, roulette_from, pass_kernels),
         );
         assert_layout(
             &module,
@@ -83,7 +83,7 @@ fn photon_structs_match_wgsl() {
             &module,
             "PhotonChange",
             size_of::<PhotonChange>(),
-            fields!(PhotonChange: position, cell, power, kind, direction, pad0, old_power, pad1),
+            fields!(PhotonChange: position, cell, power, kind, direction, pass_index, old_power, pad1),
         );
         assert_layout(
             &module,

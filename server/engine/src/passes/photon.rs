@@ -47,9 +47,14 @@ pub struct PhotonUniforms {
     pub scatter_samples: u32,
     pub census: u32,
     pub round_first: u32,
-    pub pad1: u32,
-    pub pad2: u32,
+    pub roulette_survival: f32,
+    pub roulette_from: u32,
+    /// Per pass (r_i², (r_0 / r_i)³), two passes per entry (`pass_kernels`).
+    pub pass_kernels: [[f32; 4]; PASS_KERNEL_ENTRIES],
 }
+
+/// Entries of `PhotonUniforms::pass_kernels` (two passes each).
+pub const PASS_KERNEL_ENTRIES: usize = 128;
 
 /// Matches `PhotonRecord`: one stored photon interaction.
 #[repr(C)]
@@ -97,7 +102,7 @@ pub struct PhotonChange {
     pub power: [f32; 3],
     pub kind: u32,
     pub direction: [f32; 3],
-    pub pad0: u32,
+    pub pass_index: u32,
     pub old_power: [f32; 3],
     pub pad1: u32,
 }
