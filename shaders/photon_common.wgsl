@@ -3,6 +3,10 @@
 // the photon, path and view-ray-segment records, historygram helpers and the medium.
 // Prepended to photon_trace.wgsl, photon_grid.wgsl, photon_gather.wgsl and photon_scatter.wgsl.
 
+#import common
+#import volume
+#import scene
+
 struct PhotonUniforms {
     // Hash grid: cell edge = gather radius, over the volume box.
     grid_dims: vec3<u32>,

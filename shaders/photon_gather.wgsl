@@ -21,6 +21,8 @@
 // `composite` multiplies the segments front to back.
 // Rust twin: server/engine/src/passes/photon.rs.
 
+#import photon_common
+
 // Whether a photon change recorded in the spatial historygram can reach the segment a..b.
 fn spatial_hit(a: vec3<f32>, b: vec3<f32>) -> bool {
     let lo = spatial_bins(min(a, b) - vec3<f32>(photon.radius));

@@ -6,6 +6,8 @@
 // grid_count, grid_scan, grid_scatter.
 // Rust twin: server/engine/src/passes/photon.rs.
 
+#import photon_common
+
 const SCAN_THREADS: u32 = 256u;
 
 var<workgroup> scan_sums: array<u32, SCAN_THREADS>;

@@ -28,6 +28,8 @@
 // segments).
 // Rust twin: server/engine/src/passes/photon.rs.
 
+#import photon_common
+
 fn weight_word(slot: u32, j: u32) -> u32 {
     return slot_word(photon.scatter_capacity, 0u) + slot * photon.scatter_samples + j;
 }

@@ -18,6 +18,8 @@
 // one affected path runs while the others idle.
 // Rust twin: server/engine/src/passes/photon.rs.
 
+#import photon_common
+
 // Marks the spatial historygram (3×64 bits) at world position p and the dirty bits of the
 // half-size cells that come within the gather radius of p (of the 5 × 5 × 5 around p's, about
 // two thirds: those whose box lies within the radius, with 1% to spare for rounding), every one a

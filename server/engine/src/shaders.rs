@@ -150,23 +150,23 @@ pub fn manylight_gather() -> String {
 
 /// Photon tracing (technique `photon`).
 pub fn photon_trace() -> String {
-    [COMMON, VOLUME, SCENE, PHOTON_COMMON, PHOTON_TRACE].concat()
+    compose("photon_trace")
 }
 
 /// The photon hash-grid build (technique `photon`).
 pub fn photon_grid() -> String {
-    [COMMON, VOLUME, SCENE, PHOTON_COMMON, PHOTON_GRID].concat()
+    compose("photon_grid")
 }
 
 /// Radiance gathering along view-ray segments and compositing (technique `photon`).
 pub fn photon_gather() -> String {
-    [COMMON, VOLUME, SCENE, PHOTON_COMMON, PHOTON_GATHER].concat()
+    compose("photon_gather")
 }
 
 /// The photon delta scatter: an update's changed photons added to the segments they reach
 /// (technique `photon`).
 pub fn photon_scatter() -> String {
-    [COMMON, VOLUME, SCENE, PHOTON_COMMON, PHOTON_SCATTER].concat()
+    compose("photon_scatter")
 }
 
 /// The passes of technique `irradiance`: `pass` is one of its entry sources
