@@ -179,7 +179,7 @@ mod tests {
         .unwrap();
         let volume = open_dataset(&file.dataset, Path::new(".")).unwrap();
         let scene = engine_scene(&file, &volume).unwrap();
-        let config = voxlight_engine::technique_options::irradiance_config(
+        let config = voxlight_engine::techniques::irradiance::IrradianceConfig::from_options(
             &scene.technique_options.irradiance,
         );
         assert_eq!(

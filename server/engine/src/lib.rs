@@ -16,7 +16,6 @@ pub mod scene;
 pub mod scene_gpu;
 pub mod shaders;
 pub mod technique;
-pub mod technique_options;
 pub mod techniques;
 pub mod tf;
 pub mod validate;
@@ -127,7 +126,7 @@ impl Engine {
             .map(|(name, description)| voxlight_protocol::TechniqueInfo {
                 name: (*name).to_owned(),
                 description: (*description).to_owned(),
-                default_options: technique_options::defaults_of(name),
+                default_options: techniques::default_options(name),
             })
             .collect()
     }

@@ -138,19 +138,25 @@ impl Renderer {
                 engine,
                 volume.clone(),
                 scene,
-                crate::technique_options::photon_params(&scene.technique_options.photon),
+                crate::techniques::photon::PhotonParams::from_options(
+                    &scene.technique_options.photon,
+                ),
             )?),
             "manylight" => Box::new(crate::techniques::manylight::Manylight::new(
                 engine,
                 volume.clone(),
                 scene,
-                crate::technique_options::manylight_config(&scene.technique_options.manylight),
+                crate::techniques::manylight::ManylightConfig::from_options(
+                    &scene.technique_options.manylight,
+                ),
             )?),
             "irradiance" => Box::new(crate::techniques::irradiance::Irradiance::new(
                 engine,
                 volume.clone(),
                 scene,
-                crate::technique_options::irradiance_config(&scene.technique_options.irradiance),
+                crate::techniques::irradiance::IrradianceConfig::from_options(
+                    &scene.technique_options.irradiance,
+                ),
             )?),
             other => return Err(EngineError::UnknownTechnique(other.to_owned())),
         };

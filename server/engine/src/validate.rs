@@ -1,6 +1,6 @@
 //! Whole-scene checks: every part of a [`Scene`], its technique options included. Apart from
-//! `scene.rs` because the options are checked against the techniques, which build on the
-//! scene (`scene` → `technique_options` → `techniques` → `scene` would be a circle).
+//! `scene.rs` because the options are checked by the techniques, which build on the scene
+//! (`scene` → `techniques` → `scene` would be a circle).
 
 use crate::camera::CameraBasis;
 use crate::scene::{Scene, validate_lights, validate_params, validate_viewport};
@@ -13,6 +13,6 @@ impl Scene {
         validate_lights(&self.lights)?;
         validate_params(&self.params)?;
         validate_viewport(&self.viewport)?;
-        crate::technique_options::validate(&self.technique_options)
+        crate::techniques::validate_options(&self.technique_options)
     }
 }

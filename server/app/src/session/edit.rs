@@ -48,7 +48,7 @@ pub fn validate_message(message: &ClientMessage) -> Result<(), Reply> {
             }
             match technique_options {
                 Some(options) => {
-                    voxlight_engine::technique_options::validate(options).map_err(Reply::bad)
+                    voxlight_engine::techniques::validate_options(options).map_err(Reply::bad)
                 }
                 None => Ok(()),
             }
@@ -100,7 +100,7 @@ pub fn validate_message(message: &ClientMessage) -> Result<(), Reply> {
         ClientMessage::Technique {
             options: Some(options),
             ..
-        } => voxlight_engine::technique_options::validate(options).map_err(Reply::bad),
+        } => voxlight_engine::techniques::validate_options(options).map_err(Reply::bad),
         ClientMessage::Technique { options: None, .. }
         | ClientMessage::Ack { .. }
         | ClientMessage::Name { .. }
@@ -163,7 +163,7 @@ pub(super) async fn handle_message(
             check_technique(state, &name)?;
             if let Some(options) = &options {
                 scene.technique_options = scene.technique_options.overlaid(options);
-                voxlight_engine::technique_options::validate(&scene.technique_options)
+                voxlight_engine::techniques::validate_options(&scene.technique_options)
                     .map_err(Reply::bad)?;
             }
             rebuild(

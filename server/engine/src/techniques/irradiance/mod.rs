@@ -25,6 +25,7 @@
 //! The cache assumes an isotropic phase function at the first scattering event (as the paper);
 //! with |g| > 0.001 the technique renders plain MCVR and says so in its stats.
 
+mod config;
 pub mod octree;
 
 use std::collections::VecDeque;

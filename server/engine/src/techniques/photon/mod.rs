@@ -41,6 +41,7 @@
 //! it bounds what any bit-exact update between them can save.
 
 pub mod census;
+mod config;
 
 use std::cell::Cell;
 use std::sync::Arc;

@@ -9,6 +9,7 @@
 //! paper first re-weights them with its Eq. 6, which is not done here), then they are rebuilt
 //! and the picture restarts.
 
+mod config;
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
