@@ -275,6 +275,47 @@ pub struct Downsampled {
     pub reason: String,
 }
 
+/// The rendering techniques, by the name the protocol uses for each (`hello.technique`, the
+/// `technique` message, `welcome.techniques`). Messages carry the name as a string, so that an
+/// unknown one is answered with `unknown_technique`; the server turns it into this enum, whose
+/// matches are exhaustive: a new technique is added here and the compiler lists the rest.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TechniqueKind {
+    Raymarch,
+    Pathtrace,
+    Manylight,
+    Irradiance,
+    Photon,
+}
+
+impl TechniqueKind {
+    /// Every technique, in the order clients list them.
+    pub const ALL: [TechniqueKind; 5] = [
+        TechniqueKind::Raymarch,
+        TechniqueKind::Pathtrace,
+        TechniqueKind::Manylight,
+        TechniqueKind::Irradiance,
+        TechniqueKind::Photon,
+    ];
+
+    /// The protocol's name of the technique.
+    pub fn name(self) -> &'static str {
+        match self {
+            TechniqueKind::Raymarch => "raymarch",
+            TechniqueKind::Pathtrace => "pathtrace",
+            TechniqueKind::Manylight => "manylight",
+            TechniqueKind::Irradiance => "irradiance",
+            TechniqueKind::Photon => "photon",
+        }
+    }
+
+    /// The technique of a protocol name, if there is one.
+    pub fn from_name(name: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|k| k.name() == name)
+    }
+}
+
 /// A technique the server offers.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TechniqueInfo {
@@ -647,6 +688,18 @@ pub fn join_frame(meta: &FrameMeta, image: &[u8]) -> Vec<u8> {
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn technique_names_round_trip_and_match_serde() {
+        for kind in TechniqueKind::ALL {
+            assert_eq!(TechniqueKind::from_name(kind.name()), Some(kind));
+            assert_eq!(
+                serde_json::to_string(&kind).unwrap(),
+                format!("\"{}\"", kind.name())
+            );
+        }
+        assert_eq!(TechniqueKind::from_name("warp"), None);
+    }
     use super::*;
 
     #[test]

@@ -121,12 +121,12 @@ impl Engine {
 
     /// The techniques this engine offers.
     pub fn techniques(&self) -> Vec<voxlight_protocol::TechniqueInfo> {
-        techniques::ALL
-            .iter()
-            .map(|(name, description)| voxlight_protocol::TechniqueInfo {
-                name: (*name).to_owned(),
-                description: (*description).to_owned(),
-                default_options: techniques::default_options(name),
+        voxlight_protocol::TechniqueKind::ALL
+            .into_iter()
+            .map(|kind| voxlight_protocol::TechniqueInfo {
+                name: kind.name().to_owned(),
+                description: techniques::description(kind).to_owned(),
+                default_options: techniques::default_options(kind),
             })
             .collect()
     }

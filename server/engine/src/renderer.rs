@@ -4,7 +4,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use voxlight_protocol::TransferFunction;
+use voxlight_protocol::{TechniqueKind, TransferFunction};
 
 use crate::brightness::{BrightnessMatch, mean_rgb};
 use crate::passes::tonemap::ToneParams;
@@ -121,20 +121,22 @@ impl Renderer {
     ) -> Result<Self, EngineError> {
         scene.validate().map_err(EngineError::InvalidScene)?;
         check_budget(engine, scene)?;
-        let technique: Box<dyn Technique> = match technique {
-            "raymarch" => Box::new(Progressive::new(
+        let kind = TechniqueKind::from_name(technique)
+            .ok_or_else(|| EngineError::UnknownTechnique(technique.to_owned()))?;
+        let technique: Box<dyn Technique> = match kind {
+            TechniqueKind::Raymarch => Box::new(Progressive::new(
                 engine,
                 Estimator::Raymarch,
                 volume.clone(),
                 scene,
             )?),
-            "pathtrace" => Box::new(Progressive::new(
+            TechniqueKind::Pathtrace => Box::new(Progressive::new(
                 engine,
                 Estimator::Pathtrace,
                 volume.clone(),
                 scene,
             )?),
-            "photon" => Box::new(Photon::new(
+            TechniqueKind::Photon => Box::new(Photon::new(
                 engine,
                 volume.clone(),
                 scene,
@@ -142,7 +144,7 @@ impl Renderer {
                     &scene.technique_options.photon,
                 ),
             )?),
-            "manylight" => Box::new(crate::techniques::manylight::Manylight::new(
+            TechniqueKind::Manylight => Box::new(crate::techniques::manylight::Manylight::new(
                 engine,
                 volume.clone(),
                 scene,
@@ -150,7 +152,7 @@ impl Renderer {
                     &scene.technique_options.manylight,
                 ),
             )?),
-            "irradiance" => Box::new(crate::techniques::irradiance::Irradiance::new(
+            TechniqueKind::Irradiance => Box::new(crate::techniques::irradiance::Irradiance::new(
                 engine,
                 volume.clone(),
                 scene,
@@ -158,7 +160,6 @@ impl Renderer {
                     &scene.technique_options.irradiance,
                 ),
             )?),
-            other => return Err(EngineError::UnknownTechnique(other.to_owned())),
         };
         Self::with_technique(engine, technique, volume, scene)
     }

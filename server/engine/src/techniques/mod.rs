@@ -5,7 +5,7 @@
 //!   `TechniqueOptions` (`validate_options`, `from_options`, `as_options`).
 //! - `validate_options` and `default_options` here cover every technique.
 
-use voxlight_protocol::TechniqueOptions;
+use voxlight_protocol::{TechniqueKind, TechniqueOptions};
 
 use self::irradiance::IrradianceConfig;
 use self::manylight::ManylightConfig;
@@ -16,29 +16,26 @@ pub mod manylight;
 pub mod photon;
 pub mod progressive;
 
-/// Name and one-line description of every technique, in the order clients list them.
-pub const ALL: &[(&str, &str)] = &[
-    (
-        "raymarch",
-        "Single scattering with shadow rays to every light and the environment (fast preview; no multiple scattering)",
-    ),
-    (
-        "pathtrace",
-        "Unbiased Monte-Carlo path tracing with delta tracking and next-event estimation (the reference; multiple scattering)",
-    ),
-    (
-        "manylight",
-        "Single scattering plus multiple scattering from virtual spherical lights with transmittance cached in adaptive volumetric shadow maps (Weber et al. 2013)",
-    ),
-    (
-        "irradiance",
-        "Monte-Carlo volume rendering whose first scattering event reads a parallel irradiance cache built while rendering (Khlebnikov et al. 2014), with multiple scattering; the lights' direct light is traced with shadow rays and the cache holds the indirect light (isotropic phase function; zones interpolate it over a few voxels: slightly biased there); TF edits keep the entries they cannot change",
-    ),
-    (
-        "photon",
-        "Volumetric photon mapping with historygrams: progressive photon passes, view-ray segments; TF edits retrace only affected photons and segments (multiple scattering, kernel-density bias)",
-    ),
-];
+/// One-line description of a technique, as clients list it.
+pub fn description(kind: TechniqueKind) -> &'static str {
+    match kind {
+        TechniqueKind::Raymarch => {
+            "Single scattering with shadow rays to every light and the environment (fast preview; no multiple scattering)"
+        }
+        TechniqueKind::Pathtrace => {
+            "Unbiased Monte-Carlo path tracing with delta tracking and next-event estimation (the reference; multiple scattering)"
+        }
+        TechniqueKind::Manylight => {
+            "Single scattering plus multiple scattering from virtual spherical lights with transmittance cached in adaptive volumetric shadow maps (Weber et al. 2013)"
+        }
+        TechniqueKind::Irradiance => {
+            "Monte-Carlo volume rendering whose first scattering event reads a parallel irradiance cache built while rendering (Khlebnikov et al. 2014), with multiple scattering; the lights' direct light is traced with shadow rays and the cache holds the indirect light (isotropic phase function; zones interpolate it over a few voxels: slightly biased there); TF edits keep the entries they cannot change"
+        }
+        TechniqueKind::Photon => {
+            "Volumetric photon mapping with historygrams: progressive photon passes, view-ray segments; TF edits retrace only affected photons and segments (multiple scattering, kernel-density bias)"
+        }
+    }
+}
 
 /// Checks that an option, when given, is in `[low, high]` (the message names it).
 pub(crate) fn in_range<T: PartialOrd + std::fmt::Display + Copy>(
@@ -65,13 +62,13 @@ pub fn validate_options(options: &TechniqueOptions) -> Result<(), String> {
 
 /// `technique`'s options at their defaults (empty for a technique without options), so that
 /// clients can show them without a copy of the defaults.
-pub fn default_options(technique: &str) -> TechniqueOptions {
+pub fn default_options(technique: TechniqueKind) -> TechniqueOptions {
     let mut options = TechniqueOptions::default();
     match technique {
-        "photon" => options.photon = PhotonParams::default().as_options(),
-        "manylight" => options.manylight = ManylightConfig::default().as_options(),
-        "irradiance" => options.irradiance = IrradianceConfig::default().as_options(),
-        _ => {}
+        TechniqueKind::Photon => options.photon = PhotonParams::default().as_options(),
+        TechniqueKind::Manylight => options.manylight = ManylightConfig::default().as_options(),
+        TechniqueKind::Irradiance => options.irradiance = IrradianceConfig::default().as_options(),
+        TechniqueKind::Raymarch | TechniqueKind::Pathtrace => {}
     }
     options
 }
@@ -106,8 +103,8 @@ mod tests {
 
     #[test]
     fn the_advertised_defaults_are_the_defaults() {
-        for (name, _) in ALL {
-            let defaults = default_options(name);
+        for kind in TechniqueKind::ALL {
+            let defaults = default_options(kind);
             validate_options(&defaults).unwrap();
             assert_eq!(
                 PhotonParams::from_options(&defaults.photon),
@@ -122,15 +119,25 @@ mod tests {
                 IrradianceConfig::default()
             );
         }
-        assert!(default_options("raymarch").is_empty());
-        assert!(default_options("photon").photon.invalidation.is_some());
+        assert!(default_options(TechniqueKind::Raymarch).is_empty());
         assert!(
-            default_options("manylight")
+            default_options(TechniqueKind::Photon)
+                .photon
+                .invalidation
+                .is_some()
+        );
+        assert!(
+            default_options(TechniqueKind::Manylight)
                 .manylight
                 .transmittance
                 .is_some()
         );
-        assert!(default_options("irradiance").irradiance.locking.is_some());
+        assert!(
+            default_options(TechniqueKind::Irradiance)
+                .irradiance
+                .locking
+                .is_some()
+        );
     }
 
     #[test]
