@@ -14,7 +14,7 @@ use tokio::sync::{broadcast, watch};
 use voxlight_engine::Scene;
 use voxlight_protocol::{
     ErrorCode, FrameFormat, FrameMeta, MAX_NAME_CHARS, MAX_VIEWERS_PER_SESSION, ServerMessage,
-    SessionState, Stats, TechniqueDetails, ViewerInfo, join_frame,
+    SessionState, Stats, ViewerInfo, join_frame,
 };
 
 use crate::metrics::Metrics;
@@ -354,23 +354,7 @@ fn encode_frame(
     let started = Instant::now();
     let frame = &rendered.frame;
     let technique = &rendered.stats;
-    let details = TechniqueDetails {
-        photons_traced: (technique.photons_traced > 0).then_some(technique.photons_traced),
-        photons_in_map: (technique.photons_in_map > 0).then_some(technique.photons_in_map),
-        photons_retraced_pct: technique.photons_retraced_pct,
-        segments_recomputed_pct: technique.segments_recomputed_pct,
-        virtual_lights: technique.virtual_lights,
-        shadow_map_bytes: technique.shadow_map_bytes,
-        build_ms: technique.build_ms,
-        light_paths_retraced_pct: technique.light_paths_retraced_pct,
-        shadow_maps_rebuilt_pct: technique.shadow_maps_rebuilt_pct,
-        cache_entries: technique.cache_entries,
-        octree_references: technique.octree_references,
-        cache_hit_rate: technique.cache_hit_rate,
-        pending_entries: technique.pending_entries,
-        cache_active: technique.cache_active,
-        cache_entries_kept_pct: technique.cache_entries_kept_pct,
-    };
+    let details = technique.details.clone();
     let (image, format, quality) = match encoding {
         Encoding::Png => (
             crate::encode::png(&frame.rgba, frame.width, frame.height)?,

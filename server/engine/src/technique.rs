@@ -1,6 +1,7 @@
 //! The contract every rendering technique implements (DESIGN.md "The engine contract").
 
 use std::time::Duration;
+use voxlight_protocol::TechniqueDetails;
 
 use crate::{Change, Engine, EngineError, Scene};
 
@@ -17,39 +18,15 @@ pub struct StepReport {
     pub gpu_time: Duration,
 }
 
-/// Counters shown to clients in `stats` messages.
+/// Counters shown to clients in `stats` messages: the technique, its progress and memory, and
+/// its own counters in the protocol's form (`TechniqueDetails`, sent as they are).
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct TechniqueStats {
     pub name: &'static str,
     pub iteration: u32,
     /// GPU bytes this session's technique allocated (not counting the shared volume).
     pub memory_bytes: u64,
-    /// `photon`: photon paths traced since the session started (retraced ones included).
-    pub photons_traced: u64,
-    /// `photon`: photon paths in the current map.
-    pub photons_in_map: u64,
-    /// `photon`: share of the map's paths the last TF edit retraced (None before any edit).
-    pub photons_retraced_pct: Option<f32>,
-    /// `photon`: share of the view-ray segments the last TF edit gathered again.
-    pub segments_recomputed_pct: Option<f32>,
-    /// `manylight`: virtual lights held, their shadow maps' bytes, and how long the last
-    /// tracing + map build took.
-    pub virtual_lights: Option<u32>,
-    pub shadow_map_bytes: Option<u64>,
-    pub build_ms: Option<f32>,
-    /// `manylight`: shares of the light paths traced again and of the shadow maps built
-    /// again by the last TF edit (None before any).
-    pub light_paths_retraced_pct: Option<f32>,
-    pub shadow_maps_rebuilt_pct: Option<f32>,
-    /// `irradiance`: cache entries, references in its octree, the recent cache hit rate (0–1),
-    /// entries being created, whether the cache is in use (not with an anisotropic phase
-    /// function), and the share of entries the last TF edit kept (None before any).
-    pub cache_entries: Option<u32>,
-    pub octree_references: Option<u64>,
-    pub cache_hit_rate: Option<f32>,
-    pub pending_entries: Option<u32>,
-    pub cache_active: Option<bool>,
-    pub cache_entries_kept_pct: Option<f32>,
+    pub details: TechniqueDetails,
 }
 
 pub trait Technique: Send {

@@ -73,8 +73,8 @@ fn white_furnace_is_exact_through_the_cache() {
     let mut renderer = irradiance(volume, &s, fixed(IrradianceConfig::default()));
     let hdr = run(&mut renderer, &s, 16);
     let stats = details(&renderer);
-    assert!(stats.cache_entries.unwrap() > 0, "{stats:?}");
-    assert!(stats.cache_hit_rate.unwrap() > 0.25, "{stats:?}");
+    assert!(stats.details.cache_entries.unwrap() > 0, "{stats:?}");
+    assert!(stats.details.cache_hit_rate.unwrap() > 0.25, "{stats:?}");
     for (i, px) in hdr.iter().enumerate() {
         for k in 0..3 {
             assert!(
@@ -126,9 +126,11 @@ fn multiple_scattering_converges_to_pathtrace() {
     }
     let rms = relative_rms_luminance(&hdr, &want);
     assert!(rms < 0.06, "relative RMS {rms} ({stats:?})");
-    assert!(stats.cache_entries.unwrap() >= 30, "{stats:?}");
-    assert!(stats.cache_hit_rate.unwrap() > 0.3, "{stats:?}");
-    assert!(stats.octree_references.unwrap() >= stats.cache_entries.unwrap() as u64);
+    assert!(stats.details.cache_entries.unwrap() >= 30, "{stats:?}");
+    assert!(stats.details.cache_hit_rate.unwrap() > 0.3, "{stats:?}");
+    assert!(
+        stats.details.octree_references.unwrap() >= stats.details.cache_entries.unwrap() as u64
+    );
 }
 
 #[test]
@@ -192,7 +194,7 @@ fn screen_space_locking_builds_a_cache_that_converges_too() {
     let mut renderer = irradiance(volume.clone(), &s, config);
     let hdr = run(&mut renderer, &s, 40);
     let stats = details(&renderer);
-    assert!(stats.cache_entries.unwrap() >= 20, "{stats:?}");
+    assert!(stats.details.cache_entries.unwrap() >= 20, "{stats:?}");
     let want = reference("pathtrace", volume, &s, 256);
     let (got, exp) = (mean(&hdr), mean(&want));
     assert!(
@@ -654,8 +656,8 @@ fn an_anisotropic_phase_function_renders_plain_monte_carlo() {
     let mut renderer = irradiance(volume.clone(), &s, fixed(IrradianceConfig::default()));
     let hdr = run(&mut renderer, &s, 64);
     let stats = details(&renderer);
-    assert_eq!(stats.cache_active, Some(false));
-    assert_eq!(stats.cache_entries, Some(0));
+    assert_eq!(stats.details.cache_active, Some(false));
+    assert_eq!(stats.details.cache_entries, Some(0));
     let want = reference("pathtrace", volume, &s, 256);
     let (g, w) = (lum_of(mean(&hdr)), lum_of(mean(&want)));
     assert!((g / w - 1.0).abs() < 0.02, "mean {g} vs pathtrace {w}");

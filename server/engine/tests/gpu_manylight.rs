@@ -505,10 +505,10 @@ fn a_local_tf_edit_rebuilds_only_what_it_changes() {
         assert!(!update.full_rebuild, "{name}");
         let stats = technique.stats();
         assert_eq!(
-            stats.light_paths_retraced_pct,
+            stats.details.light_paths_retraced_pct,
             Some(100.0 * update.paths_retraced as f32 / update.paths as f32)
         );
-        assert!(stats.shadow_maps_rebuilt_pct.is_some());
+        assert!(stats.details.shadow_maps_rebuilt_pct.is_some());
         assert!(
             update.paths_retraced > 0,
             "{name}: the edit changes some paths"

@@ -32,7 +32,7 @@ use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use voxlight_protocol::{Light, TransferFunction};
+use voxlight_protocol::{Light, TechniqueDetails, TransferFunction};
 
 use crate::passes::irradiance::{
     BLOCK_HEIGHT, BLOCK_WIDTH, COUNTER_CREATED, COUNTER_DROPPED, COUNTER_ENTRIES, COUNTER_HITS,
@@ -1879,16 +1879,18 @@ impl Technique for Irradiance {
                 &self.config,
                 self.cache.cell_bins.size() as usize / 8,
             ),
-            cache_entries: Some(cache.entries),
-            octree_references: Some(cache.references),
-            cache_hit_rate: Some(cache.hit_rate),
-            pending_entries: Some(cache.pending),
-            cache_active: Some(cache.active),
-            cache_entries_kept_pct: cache
-                .last_edit
-                .filter(|&(before, _)| before > 0)
-                .map(|(before, kept)| 100.0 * kept as f32 / before as f32),
-            ..TechniqueStats::default()
+            details: TechniqueDetails {
+                cache_entries: Some(cache.entries),
+                octree_references: Some(cache.references),
+                cache_hit_rate: Some(cache.hit_rate),
+                pending_entries: Some(cache.pending),
+                cache_active: Some(cache.active),
+                cache_entries_kept_pct: cache
+                    .last_edit
+                    .filter(|&(before, _)| before > 0)
+                    .map(|(before, kept)| 100.0 * kept as f32 / before as f32),
+                ..TechniqueDetails::default()
+            },
         }
     }
 }

@@ -15,7 +15,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use bytemuck::Zeroable;
-use voxlight_protocol::TransferFunction;
+use voxlight_protocol::{TechniqueDetails, TransferFunction};
 
 use crate::passes::manylight::{
     CHUNK_STRIDE, GatherChunk, MAX_NODES, ManylightParams, TransmittanceMode, VirtualLight,
@@ -1237,15 +1237,18 @@ impl Technique for Manylight {
         TechniqueStats {
             name: self.name(),
             memory_bytes: base.memory_bytes + self.buffers.bytes(),
-            virtual_lights: Some(self.count),
-            shadow_map_bytes: Some(self.buffers.avsm.size()),
-            build_ms: Some((self.last_build.vls + self.last_build.avsm).as_secs_f32() * 1000.0),
-            light_paths_retraced_pct: self
-                .last_update
-                .map(|u| 100.0 * u.paths_retraced as f32 / u.paths.max(1) as f32),
-            shadow_maps_rebuilt_pct: self
-                .last_update
-                .map(|u| 100.0 * u.maps_rebuilt as f32 / u.lights.max(1) as f32),
+            details: TechniqueDetails {
+                virtual_lights: Some(self.count),
+                shadow_map_bytes: Some(self.buffers.avsm.size()),
+                build_ms: Some((self.last_build.vls + self.last_build.avsm).as_secs_f32() * 1000.0),
+                light_paths_retraced_pct: self
+                    .last_update
+                    .map(|u| 100.0 * u.paths_retraced as f32 / u.paths.max(1) as f32),
+                shadow_maps_rebuilt_pct: self
+                    .last_update
+                    .map(|u| 100.0 * u.maps_rebuilt as f32 / u.lights.max(1) as f32),
+                ..base.details
+            },
             ..base
         }
     }

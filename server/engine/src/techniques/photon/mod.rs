@@ -47,7 +47,7 @@ use std::cell::Cell;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use voxlight_protocol::{Light, TransferFunction};
+use voxlight_protocol::{Light, TechniqueDetails, TransferFunction};
 
 use crate::passes::photon::{
     COUNTER_CHANGED, COUNTER_CHANGES, COUNTER_DELTA, COUNTER_LIST, COUNTER_RECOLOURED,
@@ -1738,15 +1738,18 @@ impl Technique for Photon {
             name: self.name(),
             iteration: self.shown,
             memory_bytes: self.budget.total,
-            photons_traced: self.photons_traced,
-            photons_in_map: self.passes as u64 * self.params.photons_per_pass as u64,
-            photons_retraced_pct: self
-                .last_update
-                .map(|_| update.photons_retraced_pct() as f32),
-            segments_recomputed_pct: self
-                .last_update
-                .map(|_| update.segments_recomputed_pct() as f32),
-            ..TechniqueStats::default()
+            details: TechniqueDetails {
+                photons_traced: Some(self.photons_traced).filter(|&n| n > 0),
+                photons_in_map: Some(self.passes as u64 * self.params.photons_per_pass as u64)
+                    .filter(|&n| n > 0),
+                photons_retraced_pct: self
+                    .last_update
+                    .map(|_| update.photons_retraced_pct() as f32),
+                segments_recomputed_pct: self
+                    .last_update
+                    .map(|_| update.segments_recomputed_pct() as f32),
+                ..TechniqueDetails::default()
+            },
         }
     }
 }
