@@ -2,7 +2,7 @@
 // Carlo volume rendering in the style of Exposure Render, whose first scattering event reads
 // the irradiance from a cache of entries with ellipsoidal influence zones, stored in a
 // multi-reference octree. Every pass binds the estimator bindings (0–5) and these (6–15), one
-// bind group layout. Rust twin: server/engine/src/passes/irradiance.rs.
+// bind group layout. Rust twin: server/engine/src/techniques/irradiance/gpu.rs.
 
 #import common
 #import volume

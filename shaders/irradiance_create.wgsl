@@ -6,7 +6,7 @@
 // threads, so the lanes that run together trace nearly the same paths. When the centre estimate meets
 // the error criterion of Eq. 5 (or has max_samples), the entry is finished: its virtual
 // extinction coefficients per half-axis (Eq. 6); its radii follow from them when the requests
-// pass stores it. Rust twin: server/engine/src/passes/irradiance.rs.
+// pass stores it. Rust twin: server/engine/src/techniques/irradiance/gpu.rs.
 
 #import irradiance_common
 

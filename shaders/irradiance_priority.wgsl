@@ -2,7 +2,7 @@
 // over its pixels of ΔE = 1.96 (√(S²/N) − √(S²/(N + 1))), the reduction of the 95% error
 // estimate one more sample would bring if the sample variance S² stayed the same (Eq. 12).
 // Pixels with fewer than two samples get PRIORITY_UNSAMPLED. Rust twin:
-// server/engine/src/passes/irradiance.rs.
+// server/engine/src/techniques/irradiance/gpu.rs.
 
 #import irradiance_common
 

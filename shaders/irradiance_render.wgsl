@@ -7,7 +7,7 @@
 // point (object-space locking) or the block (screen-space locking, after a rejection test on
 // the block's share of misses). With FLAG_TRACED_DIRECT (beyond the paper) the directional and
 // point lights' direct light is traced at every event and the cache holds only the rest.
-// Rust twin: server/engine/src/passes/irradiance.rs.
+// Rust twin: server/engine/src/techniques/irradiance/gpu.rs.
 
 #import irradiance_common
 

@@ -6,7 +6,7 @@
 // gets a request, in lock order, while fewer than max_pending are pending; its local frame is
 // oriented along the extinction gradient there (§4.2). Everything is in a fixed order, so a
 // run is repeatable.
-// Rust twin: server/engine/src/passes/irradiance.rs.
+// Rust twin: server/engine/src/techniques/irradiance/gpu.rs.
 
 #import irradiance_common
 

@@ -6,7 +6,7 @@
 // along it (Fig. 6), until the point lies on its zone's edge. With FLAG_VALIDATE_HITS (beyond the
 // paper) the point's irradiance is first estimated afresh, and every entry predicting outside
 // that estimate's 95% interval (widened by the threshold) loses the point too. Rust twin:
-// server/engine/src/passes/irradiance.rs.
+// server/engine/src/techniques/irradiance/gpu.rs.
 
 #import irradiance_common
 

@@ -3,7 +3,7 @@
 // texel centre is marched to the end of the volume, and its transmittance curve is kept as at
 // most `nodes` (depth, transmittance) nodes, dropping the interior node whose removal changes
 // the area under the curve least whenever there is one too many. Nodes are packed as two
-// half floats. Rust twin: server/engine/src/passes/manylight.rs.
+// half floats. Rust twin: server/engine/src/techniques/manylight/gpu.rs.
 
 #import manylight_common
 

@@ -1,6 +1,6 @@
 // Shared pieces of technique `manylight` (Weber et al. 2013): the parameters, the virtual
 // lights, the cube-map layout of their adaptive volumetric shadow maps (AVSMs) and the virtual
-// spherical light's geometry term. Rust twin: server/engine/src/passes/manylight.rs.
+// spherical light's geometry term. Rust twin: server/engine/src/techniques/manylight/gpu.rs.
 
 #import common
 #import volume

@@ -4,7 +4,7 @@
 // T·(1 − exp(−σt·dt)) (weighted reservoir, as raymarch does); there every virtual spherical
 // light contributes power · phase · geometry · transmittance · phase. The transmittance from
 // the light comes from its AVSM (point or trilinear lookup) or, as the baseline, from a
-// ray march. Rust twin: server/engine/src/passes/manylight.rs.
+// ray march. Rust twin: server/engine/src/techniques/manylight/gpu.rs.
 
 #import march
 #import manylight_common

@@ -9,7 +9,7 @@
 // the same on every run ("spawn paths until N virtual lights"). Each path also records its
 // historygrams (VirtualLight), so that a TF edit retraces only the paths it can change; with
 // a work list, exactly those paths are traced again (the same random numbers per path).
-// Rust twin: server/engine/src/passes/manylight.rs.
+// Rust twin: server/engine/src/techniques/manylight/gpu.rs.
 
 #import tracking
 #import manylight_common

@@ -1,5 +1,5 @@
 // Shared pieces of technique `photon` (volumetric photon mapping with historygrams, Jönsson et
-// al. 2012): the bindings every photon pass shares (one layout, server/engine/src/passes/photon.rs),
+// al. 2012): the bindings every photon pass shares (one layout, server/engine/src/techniques/photon/gpu.rs),
 // the photon, path and view-ray-segment records, historygram helpers and the medium.
 // Prepended to photon_trace.wgsl, photon_grid.wgsl, photon_gather.wgsl and photon_scatter.wgsl.
 

@@ -19,7 +19,7 @@
 // sums do not depend on the budget: llvmpipe silently ends an invocation's loops after 65535
 // iterations in all, and dense cells exceed that.
 // `composite` multiplies the segments front to back.
-// Rust twin: server/engine/src/passes/photon.rs.
+// Rust twin: server/engine/src/techniques/photon/gpu.rs.
 
 #import photon_common
 

@@ -4,7 +4,7 @@
 // depend on it. `grid_pass` picks the grid: the records' (every build), or, in an update, the
 // change list's (the old and new versions of the records it changed, see PhotonChange). Entry points grid_clear,
 // grid_count, grid_scan, grid_scatter.
-// Rust twin: server/engine/src/passes/photon.rs.
+// Rust twin: server/engine/src/techniques/photon/gpu.rs.
 
 #import photon_common
 

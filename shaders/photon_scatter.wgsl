@@ -26,7 +26,7 @@
 // (gather_mark), and so are all of them where the changes far outnumber the segments (the host
 // then runs scatter_fallback alone: the scatter's cost follows the changes, the gather's the
 // segments).
-// Rust twin: server/engine/src/passes/photon.rs.
+// Rust twin: server/engine/src/techniques/photon/gpu.rs.
 
 #import photon_common
 

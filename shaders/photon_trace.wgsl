@@ -16,7 +16,7 @@
 // first lists the paths the edit affects, and `main` runs one invocation per listed path: a
 // sparse update then keeps every SIMD lane busy instead of paying for whole batches whose
 // one affected path runs while the others idle.
-// Rust twin: server/engine/src/passes/photon.rs.
+// Rust twin: server/engine/src/techniques/photon/gpu.rs.
 
 #import photon_common
 

@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 use serde_json::json;
 use voxlight_engine::Technique;
 use voxlight_engine::image_stats::relative_rms;
-use voxlight_engine::passes::manylight::TransmittanceMode;
+use voxlight_engine::techniques::manylight::gpu::TransmittanceMode;
 use voxlight_engine::techniques::manylight::{Manylight, ManylightConfig};
 use voxlight_engine::{Change, Engine, GpuVolume, Renderer, Scene};
 use voxlight_protocol::{Camera, TfPoint, TransferFunction, Viewport, default_lights};

@@ -68,10 +68,10 @@ pub struct Engine {
     pub gpu: Arc<Gpu>,
     pub raymarch: passes::estimator::EstimatorPass,
     pub pathtrace: passes::estimator::EstimatorPass,
-    pub photon: passes::photon::PhotonPass,
+    pub photon: techniques::photon::gpu::PhotonPass,
     pub tonemap: passes::tonemap::TonemapPass,
-    pub manylight: passes::manylight::ManylightPasses,
-    pub irradiance: passes::irradiance::IrradiancePasses,
+    pub manylight: techniques::manylight::gpu::ManylightPasses,
+    pub irradiance: techniques::irradiance::gpu::IrradiancePasses,
     pub preview: passes::preview::PreviewPasses,
     /// Most GPU bytes one session may allocate (besides the shared volume texture).
     pub session_budget: u64,
@@ -86,10 +86,10 @@ impl Engine {
     pub fn with_gpu(gpu: Arc<Gpu>) -> Result<Self, EngineError> {
         let raymarch = passes::raymarch::new(&gpu);
         let pathtrace = passes::pathtrace::new(&gpu);
-        let photon = passes::photon::PhotonPass::new(&gpu);
+        let photon = techniques::photon::gpu::PhotonPass::new(&gpu);
         let tonemap = passes::tonemap::TonemapPass::new(&gpu);
-        let manylight = passes::manylight::ManylightPasses::new(&gpu);
-        let irradiance = passes::irradiance::IrradiancePasses::new(&gpu);
+        let manylight = techniques::manylight::gpu::ManylightPasses::new(&gpu);
+        let irradiance = techniques::irradiance::gpu::IrradiancePasses::new(&gpu);
         let preview = passes::preview::PreviewPasses::new(&gpu);
         gpu.check()?;
         let session_budget = gpu.limits.max_buffer_size.min(2 << 30);

@@ -7,7 +7,7 @@ mod common;
 use std::time::Duration;
 
 use common::*;
-use voxlight_engine::passes::manylight::TransmittanceMode;
+use voxlight_engine::techniques::manylight::gpu::TransmittanceMode;
 use voxlight_engine::techniques::manylight::{Manylight, ManylightConfig};
 use voxlight_engine::{Renderer, Technique};
 use voxlight_protocol::Light;

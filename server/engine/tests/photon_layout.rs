@@ -1,16 +1,16 @@
-//! The `#[repr(C)]` structs of technique `photon` (server/engine/src/passes/photon.rs) have the
+//! The `#[repr(C)]` structs of technique `photon` (server/engine/src/techniques/photon/gpu.rs) have the
 //! same layout as their WGSL twins in shaders/photon_common.wgsl.
 
 use std::mem::{offset_of, size_of};
 
-use voxlight_engine::passes::photon::{
+use voxlight_engine::shaders;
+use voxlight_engine::techniques::photon::gpu::{
     CHANGE_ADD, CHANGE_REPLACE, CHANGE_SUBTRACT, COUNTER_CHANGED, COUNTER_CHANGES, COUNTER_DELTA,
     COUNTER_LIST, COUNTER_RECOLOURED, COUNTER_RETRACED, COUNTER_SCATTER, COUNTER_SCATTER_OVERFLOW,
     COUNTER_SEGMENTS, COUNTER_SPATIAL, COUNTER_TOUCH, COUNTER_WORDS, GRID_CHANGES, GRID_RECORDS,
     GatherState, MODE_FULL, MODE_UPDATE, PhotonChange, PhotonEmitter, PhotonPath, PhotonRecord,
     PhotonUniforms, SLOT_WORDS, SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
 };
-use voxlight_engine::shaders;
 
 fn assert_layout(module: &naga::Module, name: &str, size: usize, fields: &[(&str, usize)]) {
     let (_, ty) = module

@@ -3,12 +3,14 @@
 
 use std::mem::{offset_of, size_of};
 
-use voxlight_engine::passes::irradiance::{CacheEntry, DispatchInfo, IrradianceParams, Request};
-use voxlight_engine::passes::manylight::{ManylightParams, VirtualLight};
 use voxlight_engine::passes::preview::PreviewParams;
 use voxlight_engine::passes::tonemap::ToneParams;
 use voxlight_engine::scene_gpu::{GpuLight, SceneUniforms};
 use voxlight_engine::shaders;
+use voxlight_engine::techniques::irradiance::gpu::{
+    CacheEntry, DispatchInfo, IrradianceParams, Request,
+};
+use voxlight_engine::techniques::manylight::gpu::{ManylightParams, VirtualLight};
 
 fn parse_and_validate(name: &str, source: &str) -> naga::Module {
     let module = naga::front::wgsl::parse_str(source)

@@ -1,11 +1,10 @@
-//! One module per WGSL compute pass: the pipeline, its bind group layout and the
-//! `#[repr(C)]` structs it binds.
+//! The passes that are not one technique's: the progressive estimators (`raymarch`,
+//! `pathtrace`), the interactive preview and tone mapping — one module per WGSL pass: the
+//! pipeline, its bind group layout and the `#[repr(C)]` structs it binds. A technique's own
+//! passes live in its folder (`techniques/<t>/gpu.rs`).
 
 pub mod estimator;
-pub mod irradiance;
-pub mod manylight;
 pub mod pathtrace;
-pub mod photon;
 pub mod preview;
 pub mod raymarch;
 pub mod tonemap;

@@ -78,9 +78,9 @@ mod tests {
     use voxlight_protocol::{Locking, TechniqueOptions, Transmittance};
 
     use super::*;
-    use crate::passes::manylight::TransmittanceMode;
     use crate::techniques::irradiance::{self, IrradianceConfig};
     use crate::techniques::manylight::ManylightConfig;
+    use crate::techniques::manylight::gpu::TransmittanceMode;
     use crate::techniques::photon::{self, PhotonParams};
 
     #[test]

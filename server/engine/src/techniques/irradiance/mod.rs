@@ -26,6 +26,7 @@
 //! with |g| > 0.001 the technique renders plain MCVR and says so in its stats.
 
 mod config;
+pub mod gpu;
 pub mod octree;
 
 use std::collections::VecDeque;
@@ -34,7 +35,9 @@ use std::time::{Duration, Instant};
 
 use voxlight_protocol::{Light, TechniqueDetails, TransferFunction};
 
-use crate::passes::irradiance::{
+use crate::scene_gpu::gpu_lights;
+use crate::technique::{StepReport, Technique, TechniqueStats};
+use crate::techniques::irradiance::gpu::{
     BLOCK_HEIGHT, BLOCK_WIDTH, COUNTER_CREATED, COUNTER_DROPPED, COUNTER_ENTRIES, COUNTER_HITS,
     COUNTER_ISSUED, COUNTER_LOST, COUNTER_MISSES, COUNTER_PENDING, COUNTER_REDUCTIONS,
     COUNTER_WORDS, CacheEntry, DISPATCH_STRIDE, DispatchInfo, FLAG_CACHE, FLAG_MARCHED_VIEW,
@@ -42,8 +45,6 @@ use crate::passes::irradiance::{
     FLAG_VALIDATE_HITS, IrradianceBindings, IrradianceParams, PRIORITY_UNSAMPLED, Request,
     UPDATE_WORKGROUP,
 };
-use crate::scene_gpu::gpu_lights;
-use crate::technique::{StepReport, Technique, TechniqueStats};
 use crate::techniques::progressive::{Estimator, Progressive, accum_bytes};
 use crate::tf::{opacity_query_historygram, query_historygram};
 use crate::{Change, Engine, EngineError, GpuVolume, Scene};

@@ -4,8 +4,8 @@
 use voxlight_protocol::{ManylightOptions, Transmittance};
 
 use super::ManylightConfig;
-use crate::passes::manylight::{MAX_NODES, TransmittanceMode};
 use crate::techniques::in_range;
+use crate::techniques::manylight::gpu::{MAX_NODES, TransmittanceMode};
 
 impl ManylightConfig {
     /// Checks every option against its range (the messages name the option).

@@ -10,6 +10,7 @@
 //! and the picture restarts.
 
 mod config;
+pub mod gpu;
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -17,11 +18,11 @@ use std::time::{Duration, Instant};
 use bytemuck::Zeroable;
 use voxlight_protocol::{TechniqueDetails, TransferFunction};
 
-use crate::passes::manylight::{
+use crate::technique::{StepReport, Technique, TechniqueStats};
+use crate::techniques::manylight::gpu::{
     CHUNK_STRIDE, GatherChunk, MAX_NODES, ManylightParams, TransmittanceMode, VirtualLight,
     avsm_bytes, gather_chunk,
 };
-use crate::technique::{StepReport, Technique, TechniqueStats};
 use crate::techniques::progressive::{Estimator, Progressive};
 use crate::tf::{TF_LUT_SIZE, bake, opacity_query_historygram, query_historygram};
 use crate::{Change, Engine, EngineError, GpuVolume, Scene};

@@ -15,7 +15,7 @@
 //! compositing) is left out, and a term or a step is taken to cost what it does in the full
 //! recompute: the bound is optimistic for the update.
 
-use crate::passes::photon::PhotonRecord;
+use crate::techniques::photon::gpu::PhotonRecord;
 
 /// A full recompute's work per record slot (`Photon::census`).
 #[derive(Debug, Clone, PartialEq)]

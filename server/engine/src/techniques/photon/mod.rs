@@ -42,6 +42,7 @@
 
 pub mod census;
 mod config;
+pub mod gpu;
 
 use std::cell::Cell;
 use std::sync::Arc;
@@ -49,7 +50,9 @@ use std::time::{Duration, Instant};
 
 use voxlight_protocol::{Light, TechniqueDetails, TransferFunction};
 
-use crate::passes::photon::{
+use crate::scene_gpu::{SceneUniforms, default_step};
+use crate::technique::{StepReport, Technique, TechniqueStats};
+use crate::techniques::photon::gpu::{
     COUNTER_CHANGED, COUNTER_CHANGES, COUNTER_DELTA, COUNTER_LIST, COUNTER_RECOLOURED,
     COUNTER_RETRACED, COUNTER_SCATTER, COUNTER_SCATTER_OVERFLOW, COUNTER_SEGMENTS, COUNTER_SPATIAL,
     COUNTER_TOUCH, COUNTER_WORDS, EMIT_DIRECTIONAL, EMIT_ENVIRONMENT, EMIT_POINT, GRID_CHANGES,
@@ -57,8 +60,6 @@ use crate::passes::photon::{
     PhotonChange, PhotonEmitter, PhotonPass, PhotonPath, PhotonRecord, PhotonUniforms, SLOT_WORDS,
     SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment, dispatch_linear, dispatch_single,
 };
-use crate::scene_gpu::{SceneUniforms, default_step};
-use crate::technique::{StepReport, Technique, TechniqueStats};
 use crate::tf::{
     TF_LUT_SIZE, bake, collision_query_historygram, opacity_query_historygram,
     opacity_rise_historygram, query_historygram,

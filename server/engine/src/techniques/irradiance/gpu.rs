@@ -5,8 +5,8 @@
 
 use bytemuck::{Pod, Zeroable};
 
-use super::{layout_pipeline, storage_entry, uniform_entry, volume_entry};
 use crate::Gpu;
+use crate::passes::{layout_pipeline, storage_entry, uniform_entry, volume_entry};
 
 /// Matches `IrradianceParams` in irradiance_common.wgsl.
 #[repr(C)]
@@ -161,7 +161,7 @@ pub struct IrradiancePasses {
 
 /// The buffers and texture the passes bind.
 pub struct IrradianceBindings<'a> {
-    pub estimator: super::estimator::EstimatorBindings<'a>,
+    pub estimator: crate::passes::estimator::EstimatorBindings<'a>,
     pub params: &'a wgpu::Buffer,
     pub dispatch: &'a wgpu::Buffer,
     pub entries: &'a wgpu::Buffer,

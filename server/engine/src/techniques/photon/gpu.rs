@@ -8,8 +8,8 @@
 
 use bytemuck::{Pod, Zeroable};
 
-use super::{storage_entry, uniform_entry, volume_entry};
 use crate::Gpu;
+use crate::passes::{storage_entry, uniform_entry, volume_entry};
 
 /// Matches `PhotonUniforms` in photon_common.wgsl.
 #[repr(C)]

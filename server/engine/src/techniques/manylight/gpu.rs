@@ -6,8 +6,8 @@
 
 use bytemuck::{Pod, Zeroable};
 
-use super::{layout_pipeline, storage_entry, uniform_entry, volume_entry};
 use crate::Gpu;
+use crate::passes::{layout_pipeline, storage_entry, uniform_entry, volume_entry};
 
 /// Matches `ManylightParams` in manylight_common.wgsl.
 #[repr(C)]
