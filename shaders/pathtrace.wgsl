@@ -1,15 +1,15 @@
 // Technique `pathtrace`: the unbiased reference. One path per pixel and dispatch, traced by
-// the shared path estimator (path.wgsl): delta tracking against the macrocell majorants,
+// the shared path estimator (shared/path.wgsl): delta tracking against the macrocell majorants,
 // next-event estimation with ratio tracking, Henyey-Greenstein phase sampling, the environment
 // reached by escaping paths, Russian roulette. Rust twin: server/engine/src/passes/pathtrace.rs.
 
-#import common
-#import volume
-#import scene
-#import macrocell
-#import tracking
-#import lights
-#import path
+#import shared/common
+#import shared/volume
+#import shared/scene
+#import shared/macrocell
+#import shared/tracking
+#import shared/lights
+#import shared/path
 
 @group(0) @binding(0) var<uniform> scene: SceneUniforms;
 @group(0) @binding(1) var volume_tex: texture_3d<f32>;
@@ -18,12 +18,12 @@
 @group(0) @binding(4) var<storage, read_write> accum: array<vec4<f32>>;
 @group(0) @binding(5) var<storage, read> cell_max_opacity: array<f32>;
 
-// The hooks of path.wgsl: nothing to record here.
+// The hooks of shared/path.wgsl: nothing to record here.
 fn track_visit(cell: vec3<u32>) {}
 fn track_sample(p: vec3<f32>) {}
 fn track_vertex(p: vec3<f32>) {}
 
-// Shadow rays of lights.wgsl: ratio tracking.
+// Shadow rays of shared/lights.wgsl: ratio tracking.
 fn shadow_transmittance(p: vec3<f32>, dir: vec3<f32>, t_max: f32, rng: ptr<function, Rng>) -> f32 {
     return ratio_transmittance(p, dir, t_max, rng);
 }

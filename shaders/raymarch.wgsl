@@ -6,12 +6,12 @@
 // the march, so an absorbing-only medium is noise-free up to the jitter of the step.
 // Rust twin: server/engine/src/passes/raymarch.rs.
 
-#import common
-#import volume
-#import scene
-#import macrocell
-#import march
-#import lights
+#import shared/common
+#import shared/volume
+#import shared/scene
+#import shared/macrocell
+#import shared/march
+#import shared/lights
 
 @group(0) @binding(0) var<uniform> scene: SceneUniforms;
 @group(0) @binding(1) var volume_tex: texture_3d<f32>;
@@ -20,7 +20,7 @@
 @group(0) @binding(4) var<storage, read_write> accum: array<vec4<f32>>;
 @group(0) @binding(5) var<storage, read> cell_max_opacity: array<f32>;
 
-// Shadow rays of lights.wgsl: the jittered march with a fresh jitter.
+// Shadow rays of shared/lights.wgsl: the jittered march with a fresh jitter.
 fn shadow_transmittance(p: vec3<f32>, dir: vec3<f32>, t_max: f32, rng: ptr<function, Rng>) -> f32 {
     return transmittance(p, dir, t_max, rng_next(rng));
 }

@@ -20,7 +20,7 @@ pub struct PreviewMeans {
 /// percent (raymarch) up to tens of percent (GI), which showed as a brightness step when input
 /// stopped. The preview is `background + gain · single + multiple_weight · multiple`, where
 /// `multiple` is an approximation of multiple scattering computed for GI techniques only
-/// (preview_view.wgsl); `gain` or `multiple_weight` is fitted per channel so that a
+/// (preview/view.wgsl); `gain` or `multiple_weight` is fitted per channel so that a
 /// full-resolution preview's mean meets the technique's refined picture of the same view and
 /// scene, measured when the next edit arrives. The fit holds the scale; how the ratio moves
 /// over one drag (view, TF) is what is left, and the picture's structure is not matched.

@@ -72,7 +72,7 @@ impl CameraBasis {
     }
 
     /// Direction through continuous pixel position (x, y) of a width × height image; the
-    /// CPU twin of `camera_ray_dir` in scene.wgsl.
+    /// CPU twin of `camera_ray_dir` in shared/scene.wgsl.
     pub fn ray_dir(&self, x: f32, y: f32, width: u32, height: u32) -> [f32; 3] {
         let aspect = width as f32 / height as f32;
         let ndc_x = (2.0 * x / width as f32 - 1.0) * aspect * self.tan_half_fov;

@@ -208,7 +208,7 @@ mod tests {
                     .wrapping_add(1442695040888963407);
                 *value = (state >> 40) as f32 / (1u64 << 24) as f32;
             }
-            // Trilinear sample, as in volume.wgsl.
+            // Trilinear sample, as in shared/volume.wgsl.
             let mut i0 = [0u32; 3];
             let mut i1 = [0u32; 3];
             let mut f = [0f32; 3];

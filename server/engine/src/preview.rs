@@ -43,7 +43,7 @@ pub const DIVISORS: [u32; 4] = [1, 2, 4, 8];
 const LIGHT_CELL_VOXELS: u32 = 2;
 const MAX_LIGHT_DIM: u32 = 32;
 
-/// Light-volume channels of the environment (preview_light.wgsl: its transmittance's mean and
+/// Light-volume channels of the environment (preview/light.wgsl: its transmittance's mean and
 /// first moment over directions).
 pub const ENV_CHANNELS: u32 = 4;
 
@@ -426,7 +426,7 @@ impl Preview {
         }
         self.rendered_with = Some((brightness, env));
         let started = Instant::now();
-        // Interleaved bands of 8-row blocks (common.wgsl band_row), as many as the last view
+        // Interleaved bands of 8-row blocks (shared/common.wgsl band_row), as many as the last view
         // pass's cost per pixel predicts for this image at a part's time each.
         let pixels = width * height;
         let bands = match stop {

@@ -7,7 +7,7 @@ use crate::camera::CameraBasis;
 use crate::scene::Scene;
 use crate::volume::GpuVolume;
 
-/// Matches `SceneUniforms` in scene.wgsl.
+/// Matches `SceneUniforms` in shared/scene.wgsl.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
 pub struct SceneUniforms {
@@ -28,7 +28,7 @@ pub struct SceneUniforms {
     pub width: u32,
     pub height: u32,
     pub iteration: u32,
-    /// Band and band count of a banded dispatch (common.wgsl `band_row`,
+    /// Band and band count of a banded dispatch (shared/common.wgsl `band_row`,
     /// techniques::progressive); 0 and 1 otherwise.
     pub row_offset: u32,
     pub cell_dims: [u32; 3],
@@ -42,7 +42,7 @@ pub struct SceneUniforms {
 pub const LIGHT_DIRECTIONAL: u32 = 0;
 pub const LIGHT_POINT: u32 = 1;
 
-/// Matches `GpuLight` in scene.wgsl.
+/// Matches `GpuLight` in shared/scene.wgsl.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
 pub struct GpuLight {

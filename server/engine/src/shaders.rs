@@ -2,71 +2,71 @@
 //! imports (WGSL has no includes; module-scope declarations are order independent).
 //!
 //! - A file states what it needs with `#import <name>` lines (the name of another file under
-//!   `shaders/`, without `.wgsl`); `compose` puts every imported file once, before the first
+//!   `shaders/`, without `.wgsl`: `shared/common`, `photon/trace`); `compose` puts every imported file once, before the first
 //!   file that imports it, and drops the `#import` lines.
 //! - An entry file is a pass; its composed source is what the pipeline compiles and what the
 //!   naga tests validate (`tests/shaders.rs`).
 
-pub const COMMON: &str = include_str!("../../../shaders/common.wgsl");
-pub const VOLUME: &str = include_str!("../../../shaders/volume.wgsl");
-pub const SCENE: &str = include_str!("../../../shaders/scene.wgsl");
-pub const LIGHTS: &str = include_str!("../../../shaders/lights.wgsl");
-pub const MACROCELL: &str = include_str!("../../../shaders/macrocell.wgsl");
-pub const TRACKING: &str = include_str!("../../../shaders/tracking.wgsl");
-pub const PATH: &str = include_str!("../../../shaders/path.wgsl");
-pub const MARCH: &str = include_str!("../../../shaders/march.wgsl");
-pub const MANYLIGHT_COMMON: &str = include_str!("../../../shaders/manylight_common.wgsl");
-pub const MANYLIGHT_VLS: &str = include_str!("../../../shaders/manylight_vls.wgsl");
-pub const MANYLIGHT_AVSM: &str = include_str!("../../../shaders/manylight_avsm.wgsl");
-pub const MANYLIGHT_GATHER: &str = include_str!("../../../shaders/manylight_gather.wgsl");
+pub const COMMON: &str = include_str!("../../../shaders/shared/common.wgsl");
+pub const VOLUME: &str = include_str!("../../../shaders/shared/volume.wgsl");
+pub const SCENE: &str = include_str!("../../../shaders/shared/scene.wgsl");
+pub const LIGHTS: &str = include_str!("../../../shaders/shared/lights.wgsl");
+pub const MACROCELL: &str = include_str!("../../../shaders/shared/macrocell.wgsl");
+pub const TRACKING: &str = include_str!("../../../shaders/shared/tracking.wgsl");
+pub const PATH: &str = include_str!("../../../shaders/shared/path.wgsl");
+pub const MARCH: &str = include_str!("../../../shaders/shared/march.wgsl");
+pub const MANYLIGHT_COMMON: &str = include_str!("../../../shaders/manylight/common.wgsl");
+pub const MANYLIGHT_VLS: &str = include_str!("../../../shaders/manylight/vls.wgsl");
+pub const MANYLIGHT_AVSM: &str = include_str!("../../../shaders/manylight/avsm.wgsl");
+pub const MANYLIGHT_GATHER: &str = include_str!("../../../shaders/manylight/gather.wgsl");
 pub const RAYMARCH: &str = include_str!("../../../shaders/raymarch.wgsl");
 pub const PATHTRACE: &str = include_str!("../../../shaders/pathtrace.wgsl");
-pub const PHOTON_COMMON: &str = include_str!("../../../shaders/photon_common.wgsl");
-pub const PHOTON_TRACE: &str = include_str!("../../../shaders/photon_trace.wgsl");
-pub const PHOTON_GRID: &str = include_str!("../../../shaders/photon_grid.wgsl");
-pub const PHOTON_GATHER: &str = include_str!("../../../shaders/photon_gather.wgsl");
-pub const PHOTON_SCATTER: &str = include_str!("../../../shaders/photon_scatter.wgsl");
-pub const IRRADIANCE_COMMON: &str = include_str!("../../../shaders/irradiance_common.wgsl");
-pub const IRRADIANCE_RENDER: &str = include_str!("../../../shaders/irradiance_render.wgsl");
-pub const IRRADIANCE_CREATE: &str = include_str!("../../../shaders/irradiance_create.wgsl");
-pub const IRRADIANCE_REQUESTS: &str = include_str!("../../../shaders/irradiance_requests.wgsl");
-pub const IRRADIANCE_UPDATE: &str = include_str!("../../../shaders/irradiance_update.wgsl");
-pub const IRRADIANCE_PRIORITY: &str = include_str!("../../../shaders/irradiance_priority.wgsl");
-pub const PREVIEW_COMMON: &str = include_str!("../../../shaders/preview_common.wgsl");
-pub const PREVIEW_LIGHT: &str = include_str!("../../../shaders/preview_light.wgsl");
-pub const PREVIEW_VIEW: &str = include_str!("../../../shaders/preview_view.wgsl");
+pub const PHOTON_COMMON: &str = include_str!("../../../shaders/photon/common.wgsl");
+pub const PHOTON_TRACE: &str = include_str!("../../../shaders/photon/trace.wgsl");
+pub const PHOTON_GRID: &str = include_str!("../../../shaders/photon/grid.wgsl");
+pub const PHOTON_GATHER: &str = include_str!("../../../shaders/photon/gather.wgsl");
+pub const PHOTON_SCATTER: &str = include_str!("../../../shaders/photon/scatter.wgsl");
+pub const IRRADIANCE_COMMON: &str = include_str!("../../../shaders/irradiance/common.wgsl");
+pub const IRRADIANCE_RENDER: &str = include_str!("../../../shaders/irradiance/render.wgsl");
+pub const IRRADIANCE_CREATE: &str = include_str!("../../../shaders/irradiance/create.wgsl");
+pub const IRRADIANCE_REQUESTS: &str = include_str!("../../../shaders/irradiance/requests.wgsl");
+pub const IRRADIANCE_UPDATE: &str = include_str!("../../../shaders/irradiance/update.wgsl");
+pub const IRRADIANCE_PRIORITY: &str = include_str!("../../../shaders/irradiance/priority.wgsl");
+pub const PREVIEW_COMMON: &str = include_str!("../../../shaders/preview/common.wgsl");
+pub const PREVIEW_LIGHT: &str = include_str!("../../../shaders/preview/light.wgsl");
+pub const PREVIEW_VIEW: &str = include_str!("../../../shaders/preview/view.wgsl");
 pub const TONEMAP: &str = include_str!("../../../shaders/tonemap.wgsl");
 
 /// Every WGSL file by its name under `shaders/`.
 const FILES: &[(&str, &str)] = &[
-    ("common", COMMON),
-    ("volume", VOLUME),
-    ("scene", SCENE),
-    ("lights", LIGHTS),
-    ("macrocell", MACROCELL),
-    ("tracking", TRACKING),
-    ("path", PATH),
-    ("march", MARCH),
-    ("manylight_common", MANYLIGHT_COMMON),
-    ("manylight_vls", MANYLIGHT_VLS),
-    ("manylight_avsm", MANYLIGHT_AVSM),
-    ("manylight_gather", MANYLIGHT_GATHER),
+    ("shared/common", COMMON),
+    ("shared/volume", VOLUME),
+    ("shared/scene", SCENE),
+    ("shared/lights", LIGHTS),
+    ("shared/macrocell", MACROCELL),
+    ("shared/tracking", TRACKING),
+    ("shared/path", PATH),
+    ("shared/march", MARCH),
+    ("manylight/common", MANYLIGHT_COMMON),
+    ("manylight/vls", MANYLIGHT_VLS),
+    ("manylight/avsm", MANYLIGHT_AVSM),
+    ("manylight/gather", MANYLIGHT_GATHER),
     ("raymarch", RAYMARCH),
     ("pathtrace", PATHTRACE),
-    ("photon_common", PHOTON_COMMON),
-    ("photon_trace", PHOTON_TRACE),
-    ("photon_grid", PHOTON_GRID),
-    ("photon_gather", PHOTON_GATHER),
-    ("photon_scatter", PHOTON_SCATTER),
-    ("irradiance_common", IRRADIANCE_COMMON),
-    ("irradiance_render", IRRADIANCE_RENDER),
-    ("irradiance_create", IRRADIANCE_CREATE),
-    ("irradiance_requests", IRRADIANCE_REQUESTS),
-    ("irradiance_update", IRRADIANCE_UPDATE),
-    ("irradiance_priority", IRRADIANCE_PRIORITY),
-    ("preview_common", PREVIEW_COMMON),
-    ("preview_light", PREVIEW_LIGHT),
-    ("preview_view", PREVIEW_VIEW),
+    ("photon/common", PHOTON_COMMON),
+    ("photon/trace", PHOTON_TRACE),
+    ("photon/grid", PHOTON_GRID),
+    ("photon/gather", PHOTON_GATHER),
+    ("photon/scatter", PHOTON_SCATTER),
+    ("irradiance/common", IRRADIANCE_COMMON),
+    ("irradiance/render", IRRADIANCE_RENDER),
+    ("irradiance/create", IRRADIANCE_CREATE),
+    ("irradiance/requests", IRRADIANCE_REQUESTS),
+    ("irradiance/update", IRRADIANCE_UPDATE),
+    ("irradiance/priority", IRRADIANCE_PRIORITY),
+    ("preview/common", PREVIEW_COMMON),
+    ("preview/light", PREVIEW_LIGHT),
+    ("preview/view", PREVIEW_VIEW),
     ("tonemap", TONEMAP),
 ];
 
@@ -135,38 +135,38 @@ pub fn pathtrace() -> String {
 
 /// `manylight`, pass 1: virtual lights by random walks from the lights.
 pub fn manylight_vls() -> String {
-    compose("manylight_vls")
+    compose("manylight/vls")
 }
 
 /// `manylight`, pass 2: one adaptive volumetric shadow map per virtual light.
 pub fn manylight_avsm() -> String {
-    compose("manylight_avsm")
+    compose("manylight/avsm")
 }
 
 /// `manylight`, pass 3: multiple scattering gathered from the virtual lights.
 pub fn manylight_gather() -> String {
-    compose("manylight_gather")
+    compose("manylight/gather")
 }
 
 /// Photon tracing (technique `photon`).
 pub fn photon_trace() -> String {
-    compose("photon_trace")
+    compose("photon/trace")
 }
 
 /// The photon hash-grid build (technique `photon`).
 pub fn photon_grid() -> String {
-    compose("photon_grid")
+    compose("photon/grid")
 }
 
 /// Radiance gathering along view-ray segments and compositing (technique `photon`).
 pub fn photon_gather() -> String {
-    compose("photon_gather")
+    compose("photon/gather")
 }
 
 /// The photon delta scatter: an update's changed photons added to the segments they reach
 /// (technique `photon`).
 pub fn photon_scatter() -> String {
-    compose("photon_scatter")
+    compose("photon/scatter")
 }
 
 /// The passes of technique `irradiance`: `pass` is one of its entry sources
@@ -200,20 +200,20 @@ pub fn all() -> Vec<(&'static str, String)> {
     vec![
         ("raymarch", raymarch()),
         ("pathtrace", pathtrace()),
-        ("photon_trace", photon_trace()),
-        ("photon_grid", photon_grid()),
-        ("photon_gather", photon_gather()),
-        ("photon_scatter", photon_scatter()),
+        ("photon/trace", photon_trace()),
+        ("photon/grid", photon_grid()),
+        ("photon/gather", photon_gather()),
+        ("photon/scatter", photon_scatter()),
         ("tonemap", tonemap()),
-        ("preview_light", preview(PREVIEW_LIGHT)),
-        ("preview_view", preview(PREVIEW_VIEW)),
-        ("manylight_vls", manylight_vls()),
-        ("manylight_avsm", manylight_avsm()),
-        ("manylight_gather", manylight_gather()),
-        ("irradiance_render", irradiance(IRRADIANCE_RENDER)),
-        ("irradiance_create", irradiance(IRRADIANCE_CREATE)),
-        ("irradiance_requests", irradiance(IRRADIANCE_REQUESTS)),
-        ("irradiance_update", irradiance(IRRADIANCE_UPDATE)),
-        ("irradiance_priority", irradiance(IRRADIANCE_PRIORITY)),
+        ("preview/light", preview(PREVIEW_LIGHT)),
+        ("preview/view", preview(PREVIEW_VIEW)),
+        ("manylight/vls", manylight_vls()),
+        ("manylight/avsm", manylight_avsm()),
+        ("manylight/gather", manylight_gather()),
+        ("irradiance/render", irradiance(IRRADIANCE_RENDER)),
+        ("irradiance/create", irradiance(IRRADIANCE_CREATE)),
+        ("irradiance/requests", irradiance(IRRADIANCE_REQUESTS)),
+        ("irradiance/update", irradiance(IRRADIANCE_UPDATE)),
+        ("irradiance/priority", irradiance(IRRADIANCE_PRIORITY)),
     ]
 }

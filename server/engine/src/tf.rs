@@ -3,7 +3,7 @@
 
 use voxlight_protocol::{MAX_TF_POINTS, TfPoint, TransferFunction};
 
-/// Entries of the baked lookup table (`TF_LUT_SIZE` in volume.wgsl).
+/// Entries of the baked lookup table (`TF_LUT_SIZE` in shared/volume.wgsl).
 pub const TF_LUT_SIZE: usize = 1024;
 
 /// Data-value bins of a historygram (p = 64 in the historygram paper).

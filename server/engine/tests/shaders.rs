@@ -33,7 +33,7 @@ fn every_composed_shader_validates() {
 
 #[test]
 fn imports_compose_each_file_once_before_its_importers() {
-    let source = shaders::compose("irradiance_render");
+    let source = shaders::compose("irradiance/render");
     assert!(!source.contains("#import"), "import lines are dropped");
     // `common` is imported by several pieces of this pass and appears once.
     let first_line = shaders::COMMON.lines().next().unwrap();
@@ -51,7 +51,7 @@ fn imports_compose_each_file_once_before_its_importers() {
     assert!(common_at < irradiance_common_at && irradiance_common_at < render_at);
     assert_eq!(
         shaders::imports(shaders::IRRADIANCE_RENDER).collect::<Vec<_>>(),
-        vec!["irradiance_common"]
+        vec!["irradiance/common"]
     );
 }
 
@@ -66,8 +66,20 @@ fn every_wgsl_file_is_part_of_a_validated_shader() {
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shaders");
     let composed: Vec<String> = shaders::all().into_iter().map(|(_, s)| s).collect();
     let mut count = 0;
-    for entry in std::fs::read_dir(&dir).unwrap() {
-        let path = entry.unwrap().path();
+    // `shaders/` and its folders (shared/, one per technique).
+    let mut files = Vec::new();
+    let mut folders = vec![dir.clone()];
+    while let Some(folder) = folders.pop() {
+        for entry in std::fs::read_dir(&folder).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                folders.push(path);
+            } else {
+                files.push(path);
+            }
+        }
+    }
+    for path in files {
         if path.extension().is_some_and(|e| e == "wgsl") {
             // A file appears in the composed source without its `#import` lines.
             let text: String = std::fs::read_to_string(&path)
@@ -85,7 +97,7 @@ fn every_wgsl_file_is_part_of_a_validated_shader() {
         }
     }
     assert!(
-        count >= 5,
+        count >= 25,
         "found only {count} WGSL files in {}",
         dir.display()
     );
@@ -224,7 +236,7 @@ fn rust_and_wgsl_layouts_agree() {
     }
 }
 
-/// Every pass binds the lights as a uniform array (scene.wgsl's MAX_LIGHTS) that holds as many
+/// Every pass binds the lights as a uniform array (shared/scene.wgsl's MAX_LIGHTS) that holds as many
 /// as the protocol allows.
 #[test]
 fn lights_are_a_uniform_array_of_max_lights() {

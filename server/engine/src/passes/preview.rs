@@ -9,7 +9,7 @@ use bytemuck::{Pod, Zeroable};
 use super::{TILE, layout_pipeline, storage_entry, uniform_entry, volume_entry};
 use crate::Gpu;
 
-/// Matches `PreviewParams` in preview_common.wgsl.
+/// Matches `PreviewParams` in preview/common.wgsl.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
 pub struct PreviewParams {

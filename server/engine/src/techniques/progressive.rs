@@ -7,7 +7,7 @@
 //!   software adapter) runs as bands, one per submission, so that `step` returns within about
 //!   a band and the render thread can show an edit that came meanwhile instead of holding it
 //!   for the whole iteration. Band k of n holds the 8-row blocks k, k + n, k + 2n, …
-//!   (common.wgsl `band_row`): interleaved, every band costs about the same (contiguous bands
+//!   (shared/common.wgsl `band_row`): interleaved, every band costs about the same (contiguous bands
 //!   did not: the empty rows above a CT are cheap, the ones through it dear), and each 8×8
 //!   workgroup still covers adjacent rows. The samples are the same as a whole dispatch's (the
 //!   random numbers depend on the pixel and the iteration only).
@@ -98,7 +98,7 @@ pub(crate) fn band_rows(height: u32, band: u32, bands: u32) -> u32 {
     (blocks(height) - band).div_ceil(bands) * 8
 }
 
-/// One band of an iteration: the dispatch's `row_offset`/`row_stride` (common.wgsl
+/// One band of an iteration: the dispatch's `row_offset`/`row_stride` (shared/common.wgsl
 /// `band_row`) and the rows it dispatches.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) struct Band {

@@ -94,7 +94,7 @@ pub fn render_with(
 }
 
 /// Trilinear sample of the normalized volume at box-relative u (the CPU twin of
-/// sample_volume in volume.wgsl).
+/// sample_volume in shared/volume.wgsl).
 pub fn trilinear(volume: &Volume, u: [f32; 3]) -> f32 {
     let d = volume.dims;
     let mut i0 = [0usize; 3];

@@ -8,7 +8,7 @@ use bytemuck::{Pod, Zeroable};
 use crate::Gpu;
 use crate::passes::{layout_pipeline, storage_entry, uniform_entry, volume_entry};
 
-/// Matches `IrradianceParams` in irradiance_common.wgsl.
+/// Matches `IrradianceParams` in irradiance/common.wgsl.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
 pub struct IrradianceParams {
@@ -44,7 +44,7 @@ pub struct IrradianceParams {
     pub view_picks: u32,
 }
 
-/// Matches `CacheEntry` in irradiance_common.wgsl.
+/// Matches `CacheEntry` in irradiance/common.wgsl.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
 pub struct CacheEntry {
@@ -82,7 +82,7 @@ impl CacheEntry {
     }
 }
 
-/// Matches `Request` in irradiance_common.wgsl.
+/// Matches `Request` in irradiance/common.wgsl.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
 pub struct Request {
@@ -103,7 +103,7 @@ pub struct Request {
     pub entry: CacheEntry,
 }
 
-/// Matches `DispatchInfo` in irradiance_common.wgsl; one per `DISPATCH_STRIDE` bytes, bound
+/// Matches `DispatchInfo` in irradiance/common.wgsl; one per `DISPATCH_STRIDE` bytes, bound
 /// with a dynamic offset.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]

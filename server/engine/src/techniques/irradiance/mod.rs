@@ -223,7 +223,7 @@ impl Default for IrradianceConfig {
 }
 
 /// Scattering events a camera path may have by default (as `pathtrace`, MAX_BOUNCES in
-/// path.wgsl).
+/// shared/path.wgsl).
 pub const DEFAULT_BOUNCES: u32 = 1024;
 
 /// |g| above which the cache (isotropic at the first event) is not used.
@@ -1665,7 +1665,7 @@ pub fn brightest_irradiance(scene: &Scene) -> f32 {
         .sum()
 }
 
-/// The radii an entry starts with: validity_radius in irradiance_common.wgsl.
+/// The radii an entry starts with: validity_radius in irradiance/common.wgsl.
 pub fn validity_radius(sigma: f32, delta: f32, epsilon: f32, min_r: f32, max_r: f32) -> f32 {
     let magnitude = sigma.abs();
     let mut r = max_r;
@@ -1680,7 +1680,7 @@ pub fn validity_radius(sigma: f32, delta: f32, epsilon: f32, min_r: f32, max_r: 
     r.max(min_r)
 }
 
-/// The columns (t, b, n) of orthonormal_basis in common.wgsl.
+/// The columns (t, b, n) of orthonormal_basis in shared/common.wgsl.
 pub fn orthonormal_basis(n: [f32; 3]) -> [[f32; 3]; 3] {
     let s = if n[2] >= 0.0 { 1.0 } else { -1.0 };
     let a = -1.0 / (s + n[2]);

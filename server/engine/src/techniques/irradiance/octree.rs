@@ -13,7 +13,7 @@
 //! Built on the CPU (the paper rebuilds its octree from scratch at intervals too) and uploaded
 //! in the layout `cache_lookup` in shaders/irradiance_common.wgsl reads.
 
-/// Levels of the tree at most (MAX_DEPTH in irradiance_common.wgsl).
+/// Levels of the tree at most (MAX_DEPTH in irradiance/common.wgsl).
 pub const MAX_DEPTH: u32 = 16;
 
 /// Nodes one entry is referenced from at most (beyond the level its widest extent fits).

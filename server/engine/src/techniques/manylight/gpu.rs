@@ -9,7 +9,7 @@ use bytemuck::{Pod, Zeroable};
 use crate::Gpu;
 use crate::passes::{layout_pipeline, storage_entry, uniform_entry, volume_entry};
 
-/// Matches `ManylightParams` in manylight_common.wgsl.
+/// Matches `ManylightParams` in manylight/common.wgsl.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
 pub struct ManylightParams {
@@ -31,7 +31,7 @@ pub struct ManylightParams {
     pub pad2: u32,
 }
 
-/// Matches `VirtualLight` in manylight_common.wgsl.
+/// Matches `VirtualLight` in manylight/common.wgsl.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
 pub struct VirtualLight {
@@ -70,7 +70,7 @@ impl VirtualLight {
     }
 }
 
-/// Matches `GatherChunk` in manylight_gather.wgsl: the virtual lights one gather dispatch
+/// Matches `GatherChunk` in manylight/gather.wgsl: the virtual lights one gather dispatch
 /// covers, bound with a dynamic offset (one `CHUNK_STRIDE` slot per chunk).
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]

@@ -1255,7 +1255,7 @@ impl Technique for Manylight {
     }
 }
 
-/// Henyey-Greenstein phase function (common.wgsl's phase_hg).
+/// Henyey-Greenstein phase function (shared/common.wgsl's phase_hg).
 fn phase_hg(cos_theta: f32, g: f32) -> f64 {
     let (cos_theta, g) = (cos_theta as f64, g as f64);
     let denom = 1.0 + g * g - 2.0 * g * cos_theta;

@@ -1,17 +1,17 @@
 //! The passes of technique `photon` (shaders/photon_*.wgsl): photon tracing
-//! (`photon_trace.wgsl`: mark the paths an update retraces, trace), the hash-grid build
-//! (`photon_grid.wgsl`: clear, count, scan, scatter; of the records or of an update's changes),
-//! gathering + compositing (`photon_gather.wgsl`: mark, gather in rounds, composite) and the
-//! delta scatter of an update's changes (`photon_scatter.wgsl`: touch, weights, changes,
+//! (`photon/trace.wgsl`: mark the paths an update retraces, trace), the hash-grid build
+//! (`photon/grid.wgsl`: clear, count, scan, scatter; of the records or of an update's changes),
+//! gathering + compositing (`photon/gather.wgsl`: mark, gather in rounds, composite) and the
+//! delta scatter of an update's changes (`photon/scatter.wgsl`: touch, weights, changes,
 //! apply, fallback). All share one binding layout
-//! (declared once in `photon_common.wgsl`) and the `#[repr(C)]` records below.
+//! (declared once in `photon/common.wgsl`) and the `#[repr(C)]` records below.
 
 use bytemuck::{Pod, Zeroable};
 
 use crate::Gpu;
 use crate::passes::{storage_entry, uniform_entry, volume_entry};
 
-/// Matches `PhotonUniforms` in photon_common.wgsl.
+/// Matches `PhotonUniforms` in photon/common.wgsl.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
 pub struct PhotonUniforms {
@@ -157,7 +157,7 @@ pub const COUNTER_SCATTER: usize = 13;
 pub const COUNTER_SCATTER_OVERFLOW: usize = 14;
 pub const COUNTER_TOUCH: usize = 15;
 pub const COUNTER_RECOLOURED: usize = 16;
-/// Words per delta-scatter slot (photon_scatter.wgsl).
+/// Words per delta-scatter slot (photon/scatter.wgsl).
 pub const SLOT_WORDS: usize = 8;
 /// `grid_pass` uniform: which grid the grid kernels build.
 pub const GRID_RECORDS: u32 = 0;

@@ -2,8 +2,8 @@
 //!
 //! Each progressive pass traces `photons_per_pass` more photon paths (shaders/photon_trace.wgsl)
 //! into a buffer of `bounces` records per path, rebuilds the hash grid over every record
-//! (photon_grid.wgsl) and gathers every view-ray segment from all photons so far
-//! (photon_gather.wgsl), then composites the segments into the HDR output.
+//! (photon/grid.wgsl) and gathers every view-ray segment from all photons so far
+//! (photon/gather.wgsl), then composites the segments into the HDR output.
 //!
 //! Consistency (docs/validation.md, against Mitsuba 3): paths scatter up to `bounces` (16) times
 //! with Russian roulette from the second scattering on (a TF-independent survival probability,
@@ -236,7 +236,7 @@ fn photons_report(words: &[u32], paths: u32, segments: u64) -> UpdateReport {
 struct Query {
     any: u64,
     opacity: u64,
-    /// Bins whose opacity rose (photon_common.wgsl: rejection_query).
+    /// Bins whose opacity rose (photon/common.wgsl: rejection_query).
     rejection: u64,
     /// Bins whose colour changed or opacity fell (collision_query).
     collision: u64,
@@ -1088,7 +1088,7 @@ impl Photon {
         Ok(true)
     }
 
-    /// The delta scatter (photon_scatter.wgsl) over the `slots` segments gather_mark gave it and
+    /// The delta scatter (photon/scatter.wgsl) over the `slots` segments gather_mark gave it and
     /// the update's change list: the slots' sample weights, every change's terms, then either
     /// the sums added to their segments or, where a change reached more pixels than one
     /// invocation may visit, every slot's segment listed for the delta gather instead (one
@@ -1168,7 +1168,7 @@ impl Photon {
     }
 
     /// The uniforms of the scatter passes: an update's, with the loop budget of one invocation
-    /// (`change_pixels` in photon_scatter.wgsl checks a change's pixels against it; the marks
+    /// (`change_pixels` in photon/scatter.wgsl checks a change's pixels against it; the marks
     /// and the scatter must decide alike).
     fn write_scatter_uniforms(&self, engine: &Engine, scene: &Scene, query: Query) {
         let dispatch = Dispatch {

@@ -1,14 +1,14 @@
-// Interactive preview, pass 1: the light volume (preview_common.wgsl). One invocation per grid
+// Interactive preview, pass 1: the light volume (preview/common.wgsl). One invocation per grid
 // point marches toward every light (midpoint rule at half a grid cell per step, so the volume is
 // deterministic and cheap), empty cells skipped; the environment
 // channels hold ENV_DIRECTIONS Fibonacci-sphere directions' mean and first moment. Run once per opacity, density or
 // light edit; camera moves and colour edits reuse it.
 
-#import preview_common
+#import preview/common
 
 const ENV_DIRECTIONS: u32 = 8u;
 
-// Transmittance from p along dir over at most t_max (march.wgsl): the midpoint rule at half a
+// Transmittance from p along dir over at most t_max (shared/march.wgsl): the midpoint rule at half a
 // light-volume cell per step (coarser steps miss walls two voxels thick).
 fn light_transmittance(p: vec3<f32>, dir: vec3<f32>, t_max: f32) -> f32 {
     let cell = (scene.box_max - scene.box_min) / vec3<f32>(params.light_dims);

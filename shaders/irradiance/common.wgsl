@@ -4,14 +4,14 @@
 // multi-reference octree. Every pass binds the estimator bindings (0–5) and these (6–15), one
 // bind group layout. Rust twin: server/engine/src/techniques/irradiance/gpu.rs.
 
-#import common
-#import volume
-#import scene
-#import macrocell
-#import tracking
-#import march
-#import lights
-#import path
+#import shared/common
+#import shared/volume
+#import shared/scene
+#import shared/macrocell
+#import shared/tracking
+#import shared/march
+#import shared/lights
+#import shared/path
 
 struct IrradianceParams {
     // The octree's root cube.
@@ -127,7 +127,7 @@ const FLAG_NO_CREATION: u32 = 4u;
 // Historygrams of the values sampled (and of the cells skipped as empty) instead of the
 // whole value range of every macrocell crossed.
 const FLAG_SAMPLED_HISTORYGRAMS: u32 = 8u;
-// Camera rays pick their scattering event along a jittered march (march.wgsl) instead of
+// Camera rays pick their scattering event along a jittered march (shared/march.wgsl) instead of
 // delta tracking it.
 const FLAG_MARCHED_VIEW: u32 = 16u;
 // The update also checks the entries holding its point against a fresh estimate there.
@@ -190,7 +190,7 @@ const UPDATE_SALT: u32 = 0x68e31da4u;
 // without reading them; the update only shrinks zones, so the radius stays an upper bound).
 @group(0) @binding(16) var<storage, read_write> bounds: array<vec4<f32>>;
 
-// The hooks of path.wgsl: a cache entry's estimate records what it depended on.
+// The hooks of shared/path.wgsl: a cache entry's estimate records what it depended on.
 var<private> recording: bool = false;
 var<private> recorded_opacity: vec2<u32>;
 var<private> recorded_colour: vec2<u32>;
@@ -226,7 +226,7 @@ fn track_vertex(p: vec3<f32>) {
     }
 }
 
-// Shadow rays of lights.wgsl.
+// Shadow rays of shared/lights.wgsl.
 fn shadow_transmittance(p: vec3<f32>, dir: vec3<f32>, t_max: f32, rng: ptr<function, Rng>) -> f32 {
     if (marched_shadows) {
         return recorded_march(p, dir, t_max, rng_next(rng));
@@ -234,7 +234,7 @@ fn shadow_transmittance(p: vec3<f32>, dir: vec3<f32>, t_max: f32, rng: ptr<funct
     return ratio_transmittance(p, dir, t_max, rng);
 }
 
-// Transmittance by the jittered march of march.wgsl (same step and cut-off), recording what
+// Transmittance by the jittered march of shared/march.wgsl (same step and cut-off), recording what
 // it sampled through the hooks.
 fn recorded_march(p: vec3<f32>, dir: vec3<f32>, t_max: f32, jitter: f32) -> f32 {
     let hit = intersect_box(p, dir, scene.box_min, scene.box_max);

@@ -6,8 +6,8 @@
 // the light comes from its AVSM (point or trilinear lookup) or, as the baseline, from a
 // ray march. Rust twin: server/engine/src/techniques/manylight/gpu.rs.
 
-#import march
-#import manylight_common
+#import shared/march
+#import manylight/common
 
 @group(0) @binding(0) var<uniform> scene: SceneUniforms;
 @group(0) @binding(1) var volume_tex: texture_3d<f32>;

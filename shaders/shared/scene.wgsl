@@ -19,11 +19,11 @@ struct SceneUniforms {
     width: u32,
     height: u32,
     iteration: u32,
-    // A dispatch of the progressive estimators is band row_offset of row_stride (common.wgsl
+    // A dispatch of the progressive estimators is band row_offset of row_stride (shared/common.wgsl
     // band_row; techniques/progressive.rs: a long iteration runs as bands); 0 and 1 for every
     // other pass.
     row_offset: u32,
-    // Macrocells per axis and their edge in voxels (macrocell.wgsl).
+    // Macrocells per axis and their edge in voxels (shared/macrocell.wgsl).
     cell_dims: vec3<u32>,
     cell_voxels: u32,
     row_stride: u32,

@@ -5,7 +5,7 @@
 // the area under the curve least whenever there is one too many. Nodes are packed as two
 // half floats. Rust twin: server/engine/src/techniques/manylight/gpu.rs.
 
-#import manylight_common
+#import manylight/common
 
 @group(0) @binding(0) var<uniform> scene: SceneUniforms;
 @group(0) @binding(1) var volume_tex: texture_3d<f32>;

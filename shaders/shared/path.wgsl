@@ -1,12 +1,12 @@
 // Shared pieces: the unbiased multiple-scattering path estimator of `pathtrace`, also used by
 // `irradiance` (its cache-miss shading and its cache entries' irradiance samples). Delta
-// tracking against the macrocell majorants (tracking.wgsl), real collisions scatter with
+// tracking against the macrocell majorants (shared/tracking.wgsl), real collisions scatter with
 // probability albedo (the path weight is multiplied by it), next-event estimation to every
-// directional and point light with ratio-tracked transmittance (lights.wgsl), Henyey-Greenstein
+// directional and point light with ratio-tracked transmittance (shared/lights.wgsl), Henyey-Greenstein
 // phase sampling, the environment reached by escaping paths (it is not sampled by next-event
 // estimation, so nothing is counted twice), Russian roulette on the path weight. A pass that
 // includes this declares the estimator bindings, its shadow-ray estimator
-// `fn shadow_transmittance(p, dir, t_max, rng) -> f32` (lights.wgsl; `ratio_transmittance`
+// `fn shadow_transmittance(p, dir, t_max, rng) -> f32` (shared/lights.wgsl; `ratio_transmittance`
 // below, or another) and three hooks: `fn track_visit(cell: vec3<u32>)` (every macrocell a
 // tracking or ratio-tracked ray enters), `fn track_sample(p: vec3<f32>)` (every tentative
 // collision they look at) and `fn track_vertex(p: vec3<f32>)` (every real collision a path

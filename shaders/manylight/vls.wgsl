@@ -11,8 +11,8 @@
 // a work list, exactly those paths are traced again (the same random numbers per path).
 // Rust twin: server/engine/src/techniques/manylight/gpu.rs.
 
-#import tracking
-#import manylight_common
+#import shared/tracking
+#import manylight/common
 
 @group(0) @binding(0) var<uniform> scene: SceneUniforms;
 @group(0) @binding(1) var volume_tex: texture_3d<f32>;
@@ -27,7 +27,7 @@
 // optical-depth march), or with macrocell majorants of every cell they crossed.
 var<private> opacity_bins: vec2<u32>;
 
-// The tracking hook (tracking.wgsl): a macrocell majorant depends on every bin of the cell.
+// The tracking hook (shared/tracking.wgsl): a macrocell majorant depends on every bin of the cell.
 fn track_visit(cell: vec3<u32>) {
     opacity_bins |= cell_bin_bits(cell);
 }
@@ -36,7 +36,7 @@ fn track_visit(cell: vec3<u32>) {
 fn track_sample(p: vec3<f32>) {}
 
 // Delta tracking against the fixed majorant density_scale · 1 (opacity ≤ 1): unlike the
-// macrocell majorants (tracking.wgsl), it does not depend on the TF, so the path depends on
+// macrocell majorants (shared/tracking.wgsl), it does not depend on the TF, so the path depends on
 // the TF only through the values it reads, which opacity_bins records. (A few more null
 // collisions per path; light paths are few.)
 fn delta_track_fixed(origin: vec3<f32>, dir: vec3<f32>, t0: f32, t1: f32, rng: ptr<function, Rng>) -> vec2<f32> {

@@ -1,11 +1,11 @@
 // Shared pieces of technique `photon` (volumetric photon mapping with historygrams, Jönsson et
 // al. 2012): the bindings every photon pass shares (one layout, server/engine/src/techniques/photon/gpu.rs),
 // the photon, path and view-ray-segment records, historygram helpers and the medium.
-// Prepended to photon_trace.wgsl, photon_grid.wgsl, photon_gather.wgsl and photon_scatter.wgsl.
+// Prepended to photon/trace.wgsl, photon/grid.wgsl, photon/gather.wgsl and photon/scatter.wgsl.
 
-#import common
-#import volume
-#import scene
+#import shared/common
+#import shared/volume
+#import shared/scene
 
 struct PhotonUniforms {
     // Hash grid: cell edge = gather radius, over the volume box.
@@ -64,7 +64,7 @@ struct PhotonUniforms {
     collision_query_lo: u32,
     collision_query_hi: u32,
     // Segments the delta scatter can hold (0: off, every delta segment is gathered from the
-    // change grid) and the lattice samples it keeps per segment (photon_scatter.wgsl).
+    // change grid) and the lattice samples it keeps per segment (photon/scatter.wgsl).
     scatter_capacity: u32,
     scatter_samples: u32,
     // 1: this full pass also counts its work per record slot into `scatter`, which a full pass
@@ -161,7 +161,7 @@ struct PhotonChange {
 
 // A segment's gather between rounds: its radiance so far (fixed point, see fixed_hi), the
 // current sample's lattice index k, the transmittance and historygram so far, and the place in
-// the 27-cell neighbourhood (cell, see photon_gather.wgsl; rank within that cell).
+// the 27-cell neighbourhood (cell, see photon/gather.wgsl; rank within that cell).
 struct GatherState {
     color_lo: vec3<u32>,
     k: f32,
@@ -213,13 +213,13 @@ const COUNTER_DELTA: u32 = 12u;
 // Segments the delta scatter updates (its slots; past scatter_capacity the rest are gathered).
 const COUNTER_SCATTER: u32 = 13u;
 // Set when a change reaches more pixels than one scatter invocation may visit: the update then
-// gathers every delta segment from the change grid instead (photon_scatter.wgsl).
+// gathers every delta segment from the change grid instead (photon/scatter.wgsl).
 const COUNTER_SCATTER_OVERFLOW: u32 = 14u;
 // Set by the host where `scatter_touch` ran: gather_mark then finds the segments the changes
 // reach by its marks instead of the dirty cells (unless the change list or the scatter
 // overflowed).
 const COUNTER_TOUCH: u32 = 15u;
-// Listed paths an update only recoloured (photon_trace.wgsl): no flight of theirs was tracked.
+// Listed paths an update only recoloured (photon/trace.wgsl): no flight of theirs was tracked.
 const COUNTER_RECOLOURED: u32 = 16u;
 // Dirty-cell bits follow the counters.
 const COUNTER_DIRTY: u32 = 17u;
@@ -261,7 +261,7 @@ const SPATIAL_CELLS: u32 = 2u;
 // The records an update changed, old and new versions (or one entry for both where only the
 // power changed; COUNTER_CHANGES of them).
 @group(0) @binding(15) var<storage, read_write> changes: array<PhotonChange>;
-// The delta scatter's state (photon_scatter.wgsl): per segment a word (SEGMENT_UNTOUCHED, which
+// The delta scatter's state (photon/scatter.wgsl): per segment a word (SEGMENT_UNTOUCHED, which
 // gather_mark leaves behind in every update; SEGMENT_TOUCHED, set by scatter_touch before it; or
 // the segment's slot + 2, set by gather_mark), then per slot SLOT_WORDS words (segment, samples marched, the change sum's lo
 // and hi words), then per slot scatter_samples sample weights (f32 bits, < 0: not gathered).
@@ -389,7 +389,7 @@ fn grid_index(c: vec3<i32>) -> u32 {
     return (u32(c.z) * d.y + u32(c.y)) * d.x + u32(c.x);
 }
 
-// Data value at world position p (trilinear, volume.wgsl).
+// Data value at world position p (trilinear, shared/volume.wgsl).
 fn data_at(p: vec3<f32>) -> f32 {
     return sample_volume((p - scene.box_min) / (scene.box_max - scene.box_min));
 }

@@ -8,7 +8,7 @@
 // run is repeatable.
 // Rust twin: server/engine/src/techniques/irradiance/gpu.rs.
 
-#import irradiance_common
+#import irradiance/common
 
 const WG: u32 = 256u;
 // Lock states (words at node_held_offset / block_held_offset).

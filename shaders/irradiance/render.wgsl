@@ -9,7 +9,7 @@
 // point lights' direct light is traced at every event and the cache holds only the rest.
 // Rust twin: server/engine/src/techniques/irradiance/gpu.rs.
 
-#import irradiance_common
+#import irradiance/common
 
 var<workgroup> block_rays: atomic<u32>;
 var<workgroup> block_misses: atomic<u32>;
@@ -23,7 +23,7 @@ var<private> picked_position: array<vec3<f32>, MAX_VIEW_PICKS>;
 var<private> picked_albedo: array<vec3<f32>, MAX_VIEW_PICKS>;
 var<private> miss_node_of: array<u32, MAX_VIEW_PICKS>;
 
-// The jittered view march of march.wgsl (same lattice, empty cells skipped, same cut-off):
+// The jittered view march of shared/march.wgsl (same lattice, empty cells skipped, same cut-off):
 // the total weight Σ T·(1 − e^(−σt·dt)) and the transmittance through it.
 fn view_weight(origin: vec3<f32>, dir: vec3<f32>, t0: f32, t1: f32, jitter: f32) -> vec2<f32> {
     var weight = 0.0;

@@ -1,5 +1,5 @@
 // Shared pieces: delta (Woodcock) tracking against the macrocell majorants. A pass that
-// includes this also includes macrocell.wgsl, declares its bindings and defines
+// includes this also includes shared/macrocell.wgsl, declares its bindings and defines
 // `fn track_visit(cell: vec3<u32>)`, called for every macrocell the tracking enters (the
 // virtual lights record the data bins their paths depended on there), and
 // `fn track_sample(p: vec3<f32>)`, called at every tentative collision.

@@ -8,7 +8,7 @@
 // that estimate's 95% interval (widened by the threshold) loses the point too. Rust twin:
 // server/engine/src/techniques/irradiance/gpu.rs.
 
-#import irradiance_common
+#import irradiance/common
 
 // Shrinks entry e's radii in the octant of x so that x lies just outside its zone: r_i − s·|l_i|
 // for the smallest s with Σ l_i² / (r_i − s·|l_i|)² ≥ 1 (bisection).

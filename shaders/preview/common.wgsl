@@ -1,4 +1,4 @@
-// Shared pieces of the interactive preview (preview_light.wgsl, preview_view.wgsl): the
+// Shared pieces of the interactive preview (preview/light.wgsl, preview/view.wgsl): the
 // bindings both passes use and the light volume's layout. Rust twin: server/engine/src/passes/preview.rs.
 //
 // The light volume holds, on a coarse cell-centred grid over the box, the transmittance from
@@ -6,11 +6,11 @@
 // ENV_DIRECTIONS directions to the environment (channel light_count). It depends on the
 // opacity, the density scale and the lights only, never on the camera or the colours.
 
-#import common
-#import volume
-#import scene
-#import macrocell
-#import march
+#import shared/common
+#import shared/volume
+#import shared/scene
+#import shared/macrocell
+#import shared/march
 
 struct PreviewParams {
     light_dims: vec3<u32>,
@@ -19,7 +19,7 @@ struct PreviewParams {
     // Preview image size (the viewport divided by the resolution divisor, rounded up).
     width: u32,
     height: u32,
-    // A view dispatch is band row_offset of row_stride (common.wgsl band_row) and a
+    // A view dispatch is band row_offset of row_stride (shared/common.wgsl band_row) and a
     // light-volume dispatch covers grid planes z_offset, z_offset + 1, …: a long preview runs
     // in parts between which an edit can stop it (engine::preview).
     row_offset: u32,
@@ -37,7 +37,7 @@ struct PreviewParams {
 @group(0) @binding(0) var<uniform> scene: SceneUniforms;
 @group(0) @binding(1) var volume_tex: texture_3d<f32>;
 @group(0) @binding(2) var<storage, read> tf_lut: array<vec4<f32>>;
-// Uniform, not storage (scene.wgsl, MAX_LIGHTS): from storage the chest CT's light volume took
+// Uniform, not storage (shared/scene.wgsl, MAX_LIGHTS): from storage the chest CT's light volume took
 // ~90 s on lavapipe, from a uniform ~3 s.
 @group(0) @binding(3) var<uniform> lights: array<GpuLight, MAX_LIGHTS>;
 @group(0) @binding(4) var<storage, read> cell_max_opacity: array<f32>;

@@ -4,7 +4,7 @@
 // Pixels with fewer than two samples get PRIORITY_UNSAMPLED. Rust twin:
 // server/engine/src/techniques/irradiance/gpu.rs.
 
-#import irradiance_common
+#import irradiance/common
 
 const PRIORITY_UNSAMPLED: f32 = 1e30;
 

@@ -2,10 +2,10 @@
 // lights, the cube-map layout of their adaptive volumetric shadow maps (AVSMs) and the virtual
 // spherical light's geometry term. Rust twin: server/engine/src/techniques/manylight/gpu.rs.
 
-#import common
-#import volume
-#import scene
-#import macrocell
+#import shared/common
+#import shared/volume
+#import shared/scene
+#import shared/macrocell
 
 struct ManylightParams {
     // Virtual-light slots, and how many hold a light.

@@ -10,7 +10,7 @@
 // changed photon), whose samples and weights are as before: they are updated by the change
 // grid alone (DELTA_SEGMENT), each changed record's old term subtracted and its new one added,
 // which in integer arithmetic gives the very bits of a full gather at the cost of the changed
-// photons only; while the delta scatter has slots (photon_scatter.wgsl) it takes them instead,
+// photons only; while the delta scatter has slots (photon/scatter.wgsl) it takes them instead,
 // from the changed photons' side. Listing them keeps every SIMD lane of the gather busy (a
 // sparse update would otherwise pay for whole idle batches).
 //
@@ -21,7 +21,7 @@
 // `composite` multiplies the segments front to back.
 // Rust twin: server/engine/src/techniques/photon/gpu.rs.
 
-#import photon_common
+#import photon/common
 
 // Whether a photon change recorded in the spatial historygram can reach the segment a..b.
 fn spatial_hit(a: vec3<f32>, b: vec3<f32>) -> bool {
@@ -99,7 +99,7 @@ fn gather_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
             if (photon.spatial == SPATIAL_AXES) {
                 stale = spatial_hit(scene.eye + dir * bounds.x, scene.eye + dir * bounds.y);
             } else if (photon.spatial == SPATIAL_CELLS) {
-                // The delta scatter's marks where they cover every change (photon_scatter.wgsl).
+                // The delta scatter's marks where they cover every change (photon/scatter.wgsl).
                 let marked = atomicLoad(&counters[COUNTER_TOUCH]) != 0u
                     && atomicLoad(&counters[COUNTER_SCATTER_OVERFLOW]) == 0u
                     && atomicLoad(&counters[COUNTER_CHANGES]) <= photon.change_capacity;
@@ -117,7 +117,7 @@ fn gather_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
                 start.color_lo = old.color_lo;
                 start.color_hi = old.color_hi;
                 atomicAdd(&counters[COUNTER_DELTA], 1u);
-                // The delta scatter takes it while it has slots (photon_scatter.wgsl).
+                // The delta scatter takes it while it has slots (photon/scatter.wgsl).
                 if (photon.scatter_capacity > 0u && atomicLoad(&counters[COUNTER_SCATTER_OVERFLOW]) == 0u) {
                     let slot = atomicAdd(&counters[COUNTER_SCATTER], 1u);
                     if (slot < photon.scatter_capacity) {

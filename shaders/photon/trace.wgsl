@@ -18,7 +18,7 @@
 // one affected path runs while the others idle.
 // Rust twin: server/engine/src/techniques/photon/gpu.rs.
 
-#import photon_common
+#import photon/common
 
 // Marks the spatial historygram (3×64 bits) at world position p and the dirty bits of the
 // half-size cells that come within the gather radius of p (of the 5 × 5 × 5 around p's, about

@@ -4,7 +4,7 @@
 // (trilinear), so no sample casts a shadow ray. The same single-scattering sum as raymarch's
 // estimator, Σ T·(1 − exp(−σt·dt))·albedo·S(p) + T·L_env, without its noise.
 
-#import preview_common
+#import preview/common
 
 // Preview steps are this multiple of scene.step (half a voxel).
 const PREVIEW_STEP_SCALE: f32 = 2.0;

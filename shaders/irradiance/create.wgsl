@@ -8,7 +8,7 @@
 // extinction coefficients per half-axis (Eq. 6); its radii follow from them when the requests
 // pass stores it. Rust twin: server/engine/src/techniques/irradiance/gpu.rs.
 
-#import irradiance_common
+#import irradiance/common
 
 const SAMPLES_PER_ROUND: u32 = 9u;
 

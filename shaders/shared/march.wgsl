@@ -1,5 +1,5 @@
 // Shared pieces: transmittance by a jittered march with empty-space skipping. A pass that
-// includes this also includes macrocell.wgsl and declares its bindings.
+// includes this also includes shared/macrocell.wgsl and declares its bindings.
 
 // Above this optical depth a shadow ray counts as blocked (exp(-16) ≈ 1e-7).
 const SHADOW_TAU_CUTOFF: f32 = 16.0;

@@ -6,7 +6,7 @@
 // grid_count, grid_scan, grid_scatter.
 // Rust twin: server/engine/src/techniques/photon/gpu.rs.
 
-#import photon_common
+#import photon/common
 
 const SCAN_THREADS: u32 = 256u;
 

@@ -1,6 +1,6 @@
 // Technique `photon`, pass 4: the delta scatter. After a TF edit, a segment whose opacity did
 // not change but that a changed photon can reach (gather_mark's delta segments) differs from
-// before only by the changed photons' terms. The delta gather (photon_gather.wgsl) finds them
+// before only by the changed photons' terms. The delta gather (photon/gather.wgsl) finds them
 // from the segment's side: every dirty sample visits the change grid's 27 cells, and most of
 // what it visits lies beyond the radius. The scatter goes from the photon's side instead:
 //
@@ -28,7 +28,7 @@
 // segments).
 // Rust twin: server/engine/src/techniques/photon/gpu.rs.
 
-#import photon_common
+#import photon/common
 
 fn weight_word(slot: u32, j: u32) -> u32 {
     return slot_word(photon.scatter_capacity, 0u) + slot * photon.scatter_samples + j;
@@ -50,7 +50,7 @@ fn scatter_weights(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
     let bounds = segment_bounds(hit, id % photon.segments);
     let jitter = pixel_jitter(pixel);
-    // The gather's march (photon_gather.wgsl), sample for sample.
+    // The gather's march (photon/gather.wgsl), sample for sample.
     var k = first_lattice_index(hit, bounds.x, jitter);
     var transmit = 1.0;
     var j = 0u;
@@ -329,7 +329,7 @@ fn scatter_changes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
                     current = slot;
                     sum = FixedSum(vec3<u32>(0u), vec3<u32>(0u));
                 }
-                // The gather's term (photon_gather.wgsl), factor for factor.
+                // The gather's term (photon/gather.wgsl), factor for factor.
                 let factor = weight * phase * (1.0 - d2 / r2) * kernel.y;
                 sum = accumulate(sum, change.power * factor, change.kind == CHANGE_SUBTRACT);
                 if (change.kind == CHANGE_REPLACE) {
