@@ -2,8 +2,8 @@
 //! imports (WGSL has no includes; module-scope declarations are order independent).
 //!
 //! - A file states what it needs with `#import <name>` lines (the name of another file under
-//!   `shaders/`, without `.wgsl`: `shared/common`, `photon/trace`); `compose` puts every imported file once, before the first
-//!   file that imports it, and drops the `#import` lines.
+//!   `shaders/`, without `.wgsl`: `shared/common`, `photon/common`); `compose` puts every
+//!   imported file once, before the first file that imports it, and drops the `#import` lines.
 //! - An entry file is a pass; its composed source is what the pipeline compiles and what the
 //!   naga tests validate (`tests/shaders.rs`).
 
