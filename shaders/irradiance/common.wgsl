@@ -1,7 +1,7 @@
 // Technique `irradiance` (Khlebnikov et al. 2014): shared declarations of its passes. Monte
 // Carlo volume rendering in the style of Exposure Render, whose first scattering event reads
 // the irradiance from a cache of entries with ellipsoidal influence zones, stored in a
-// multi-reference octree. Every pass binds the estimator bindings (0–5) and these (6–15), one
+// multi-reference octree. Every pass binds the estimator bindings (0–5) and these (6–16), one
 // bind group layout. Rust twin: server/engine/src/techniques/irradiance/gpu.rs.
 
 #import shared/common

@@ -1,4 +1,4 @@
-//! The five passes of technique `irradiance` (shaders/irradiance_*.wgsl): rendering, cache-entry
+//! The five passes of technique `irradiance` (shaders/irradiance/*.wgsl): rendering, cache-entry
 //! creation rounds, the requests pass (claims → requests, finished requests → entries), the
 //! cache update and the rendering priorities. All bind the estimator's bindings 0–5
 //! (crate::passes::estimator) plus the technique's (6–16), through one bind group layout.
