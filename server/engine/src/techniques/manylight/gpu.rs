@@ -1,4 +1,4 @@
-//! The three passes of technique `manylight` (shaders/manylight_*.wgsl): virtual lights,
+//! The three passes of technique `manylight` (shaders/manylight/*.wgsl): virtual lights,
 //! their adaptive volumetric shadow maps, and gathering. All three bind the estimator's
 //! bindings 0–5 (crate::passes::estimator) plus the technique's parameters, virtual lights and
 //! shadow maps (6–8), the gather's chunk (9, dynamic offset) and the tracing batch's scratch

@@ -1,4 +1,4 @@
-//! The passes of technique `photon` (shaders/photon_*.wgsl): photon tracing
+//! The passes of technique `photon` (shaders/photon/*.wgsl): photon tracing
 //! (`photon/trace.wgsl`: mark the paths an update retraces, trace), the hash-grid build
 //! (`photon/grid.wgsl`: clear, count, scan, scatter; of the records or of an update's changes),
 //! gathering + compositing (`photon/gather.wgsl`: mark, gather in rounds, composite) and the
@@ -327,7 +327,7 @@ pub fn linear_groups(n: u32) -> (u32, u32) {
     (x, groups.div_ceil(x))
 }
 
-/// One compute pass of `pipeline` over `n` invocations (1D kernels of photon_*.wgsl).
+/// One compute pass of `pipeline` over `n` invocations (1D kernels of shaders/photon/).
 pub fn dispatch_linear(
     encoder: &mut wgpu::CommandEncoder,
     label: &str,
