@@ -41,6 +41,14 @@ pub struct PhotonOptions {
     /// How a TF edit finds the segments to gather again.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub invalidation: Option<PhotonInvalidation>,
+    /// Progressive radius reduction: pass i gathers with r_i, r_i³ = r_0³ · Π_{k<i} (k + α) /
+    /// (k + 1) (Knaus & Zwicker); 1 keeps one radius (the paper).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub radius_alpha: Option<f32>,
+    /// Russian roulette: a path goes on past its first scattering with this probability (its
+    /// power divided by it); 1 turns it off (every path runs to `bounces`, the paper).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub roulette_survival: Option<f32>,
 }
 
 /// `photon`: how segments learn that photons within their reach changed.
@@ -199,7 +207,9 @@ impl TechniqueOptions {
             bounces,
             radius,
             segments,
-            invalidation
+            invalidation,
+            radius_alpha,
+            roulette_survival
         );
         let (m, e) = (&mut self.manylight, &edit.manylight);
         overlay!(

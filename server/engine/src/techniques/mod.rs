@@ -143,7 +143,8 @@ mod tests {
     #[test]
     fn options_reach_the_configurations() {
         let options: TechniqueOptions = serde_json::from_str(
-            r#"{"photon":{"photons_per_pass":4096,"invalidation":"spatial3x64","radius":0.02},
+            r#"{"photon":{"photons_per_pass":4096,"invalidation":"spatial3x64","radius":0.02,
+                           "radius_alpha":1.0,"roulette_survival":1.0},
                 "manylight":{"virtual_lights":1000,"transmittance":"avsm_point","face_res":48},
                 "irradiance":{"locking":"screen","priorities":false,"invalidation":"clear",
                               "cached_light":"all","view_picks":4}}"#,
@@ -155,6 +156,8 @@ mod tests {
         assert_eq!(p.invalidation, photon::Invalidation::SpatialHistogram);
         assert_eq!(p.radius, 0.02);
         assert_eq!(p.bounces, PhotonParams::default().bounces);
+        // The paper's configuration: one radius, no roulette.
+        assert_eq!((p.radius_alpha, p.roulette_survival), (1.0, 1.0));
         let m = ManylightConfig::from_options(&options.manylight);
         assert_eq!((m.vls, m.face_res), (1000, 48));
         assert_eq!(m.mode, TransmittanceMode::AvsmPoint);
@@ -188,6 +191,13 @@ mod tests {
             validate_options(&options)
                 .unwrap_err()
                 .contains("irradiance.view_picks")
+        );
+        let mut options = TechniqueOptions::default();
+        options.photon.roulette_survival = Some(0.0);
+        assert!(
+            validate_options(&options)
+                .unwrap_err()
+                .contains("photon.roulette_survival")
         );
         let mut options = TechniqueOptions::default();
         options.photon.photons_per_pass = Some(0);

@@ -13,7 +13,10 @@ impl PhotonParams {
         in_range("photon.passes", p.passes, 1, 256)?;
         in_range("photon.bounces", p.bounces, 1, 64)?;
         in_range("photon.radius", p.radius, 0.0, 0.25)?;
-        in_range("photon.segments", p.segments, 1, 32)
+        in_range("photon.segments", p.segments, 1, 32)?;
+        // Above 0: a zero α or survival would end every pass's radius or path at once.
+        in_range("photon.radius_alpha", p.radius_alpha, 0.01, 1.0)?;
+        in_range("photon.roulette_survival", p.roulette_survival, 0.05, 1.0)
     }
 
     /// The defaults with what `options` sets.
@@ -25,6 +28,8 @@ impl PhotonParams {
             bounces: options.bounces.unwrap_or(d.bounces),
             radius: options.radius.unwrap_or(d.radius),
             segments: options.segments.unwrap_or(d.segments),
+            radius_alpha: options.radius_alpha.unwrap_or(d.radius_alpha),
+            roulette_survival: options.roulette_survival.unwrap_or(d.roulette_survival),
             invalidation: match options.invalidation {
                 None => d.invalidation,
                 Some(PhotonInvalidation::AnyPhoton) => Invalidation::AnyPhoton,
@@ -43,6 +48,8 @@ impl PhotonParams {
             bounces: Some(self.bounces),
             radius: Some(self.radius),
             segments: Some(self.segments),
+            radius_alpha: Some(self.radius_alpha),
+            roulette_survival: Some(self.roulette_survival),
             invalidation: Some(match self.invalidation {
                 Invalidation::AnyPhoton => PhotonInvalidation::AnyPhoton,
                 Invalidation::SpatialHistogram => PhotonInvalidation::Spatial3x64,
