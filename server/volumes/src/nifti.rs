@@ -7,8 +7,8 @@ use std::path::{Path, PathBuf};
 use flate2::bufread::MultiGzDecoder;
 
 use crate::raw::{
-    Affine, Decoded, RawVolume, SampleMode, SampleType, Samples, Streamed, byte_count, check_dims,
-    check_spacing, read_samples_mode, read_streamed, reads_streamed,
+    Affine, Decoded, RawVolume, SampleMode, SampleType, Streamed, byte_count, check_dims,
+    check_spacing, read_samples_as, read_samples_mode,
 };
 use crate::{Endian, VolumeError};
 
@@ -326,35 +326,7 @@ pub(crate) fn load_nifti_with(
         slope: slope as f64,
         inter: inter as f64,
     });
-    let (samples, streamed) = if streaming && reads_streamed(ty, scaled) {
-        let out_ty = if scaled { SampleType::F32 } else { ty };
-        (
-            Samples::empty(out_ty),
-            Some(read_streamed(ty, affine, read)?),
-        )
-    } else {
-        let Decoded::Samples(samples) = read(SampleMode::Keep)? else {
-            unreachable!("SampleMode::Keep decodes samples")
-        };
-        let samples = match affine {
-            Some(a) => {
-                let f = |x: f64| a.apply(x);
-                let out: Vec<f32> = match &samples {
-                    Samples::U8(v) => v.iter().map(|&x| f(x as f64)).collect(),
-                    Samples::I8(v) => v.iter().map(|&x| f(x as f64)).collect(),
-                    Samples::U16(v) => v.iter().map(|&x| f(x as f64)).collect(),
-                    Samples::I16(v) => v.iter().map(|&x| f(x as f64)).collect(),
-                    Samples::U32(v) => v.iter().map(|&x| f(x as f64)).collect(),
-                    Samples::I32(v) => v.iter().map(|&x| f(x as f64)).collect(),
-                    Samples::F32(v) => v.iter().map(|&x| f(x as f64)).collect(),
-                    Samples::F64(v) => v.iter().map(|&x| f(x)).collect(),
-                };
-                Samples::F32(out)
-            }
-            None => samples,
-        };
-        (samples, None)
-    };
+    let (samples, streamed) = read_samples_as(ty, affine, streaming, read)?;
 
     let mut fmt = format!(
         "NIfTI-1 ({}{ty} {}",

@@ -8,7 +8,7 @@ use flate2::bufread::MultiGzDecoder;
 
 use crate::raw::{
     Decoded, RawVolume, SampleMode, SampleType, Samples, Streamed, byte_count, check_dims,
-    check_spacing, read_samples_mode, read_streamed, reads_streamed,
+    check_spacing, read_samples_as, read_samples_mode,
 };
 use crate::{Endian, VolumeError};
 
@@ -474,7 +474,7 @@ pub(crate) fn load_nrrd_with(
         0
     };
     // Each pass seeks to the data again (the streaming passes of `load` read twice).
-    let mut read = |mode: SampleMode| -> Result<Decoded, VolumeError> {
+    let read = |mode: SampleMode| -> Result<Decoded, VolumeError> {
         match encoding {
             Encoding::Raw => {
                 data_file
@@ -533,14 +533,7 @@ pub(crate) fn load_nrrd_with(
     };
     // ASCII data is small and parsed once, into samples.
     let (samples, streamed) =
-        if streaming && encoding != Encoding::Ascii && reads_streamed(ty, false) {
-            (Samples::empty(ty), Some(read_streamed(ty, None, read)?))
-        } else {
-            let Decoded::Samples(samples) = read(SampleMode::Keep)? else {
-                unreachable!("SampleMode::Keep decodes samples")
-            };
-            (samples, None)
-        };
+        read_samples_as(ty, None, streaming && encoding != Encoding::Ascii, read)?;
 
     let enc_name = match encoding {
         Encoding::Raw => "raw",

@@ -790,12 +790,42 @@ pub(crate) struct Streamed {
     pub range: ValueRange,
 }
 
-/// Whether `load` streams samples of `ty` straight to 16 bits ([`read_streamed`]): every type
-/// but 16-bit (whose quantization rewrites the samples in their own allocation), and every
-/// rescaled type (the rescale makes 32-bit floats). Peak memory is then the 16-bit volume, not
-/// the samples beside it.
-pub(crate) fn reads_streamed(ty: SampleType, rescaled: bool) -> bool {
-    rescaled || ty.size() != 2
+/// A loader's samples of type `ty`, read through `read` (rescaled by `affine` when given).
+///
+/// - With `streaming` (what `load` asks for), samples that are not 16-bit and rescaled ones go
+///   straight to 16 bits ([`read_streamed`]); the returned samples are then empty (of the type
+///   they would have had). 16-bit samples are not streamed: their quantization rewrites them in
+///   their own allocation, so keeping them costs nothing.
+/// - Otherwise they are kept in their type, or as `f32` after a rescale.
+// `x as f64` is the identity in the macro's f64 arm.
+#[allow(clippy::unnecessary_cast)]
+pub(crate) fn read_samples_as(
+    ty: SampleType,
+    affine: Option<Affine>,
+    streaming: bool,
+    mut read: impl FnMut(SampleMode) -> Result<Decoded, VolumeError>,
+) -> Result<(Samples, Option<Streamed>), VolumeError> {
+    if streaming && (affine.is_some() || ty.size() != 2) {
+        let kept_ty = if affine.is_some() {
+            SampleType::F32
+        } else {
+            ty
+        };
+        return Ok((
+            Samples::empty(kept_ty),
+            Some(read_streamed(ty, affine, read)?),
+        ));
+    }
+    let Decoded::Samples(samples) = read(SampleMode::Keep)? else {
+        unreachable!("SampleMode::Keep decodes samples")
+    };
+    let samples = match affine {
+        Some(a) => Samples::F32(
+            each_samples!(&samples, v => v.iter().map(|&x| a.apply(x as f64)).collect()),
+        ),
+        None => samples,
+    };
+    Ok((samples, None))
 }
 
 /// Reads a volume's samples of type `ty` through `read` straight to 16 bits: 8-bit samples in

@@ -7,8 +7,8 @@ use std::path::Path;
 use flate2::bufread::ZlibDecoder;
 
 use crate::raw::{
-    Decoded, RawVolume, SampleBuilder, SampleMode, SampleType, Samples, Streamed, byte_count,
-    check_dims, check_spacing, read_streamed, reads_streamed,
+    Decoded, RawVolume, SampleBuilder, SampleType, Samples, Streamed, byte_count, check_dims,
+    check_spacing, read_samples_as,
 };
 use crate::{Endian, VolumeError};
 
@@ -378,13 +378,7 @@ fn decode_data(
         let builder = SampleBuilder::with_mode(ty, l.endian, count, mode);
         decode_block(path, b, base, l, ty, nbytes, builder)
     };
-    if streaming && reads_streamed(ty, false) {
-        return Ok((Samples::empty(ty), Some(read_streamed(ty, None, decode)?)));
-    }
-    let Decoded::Samples(samples) = decode(SampleMode::Keep)? else {
-        unreachable!("SampleMode::Keep decodes samples")
-    };
-    Ok((samples, None))
+    read_samples_as(ty, None, streaming, decode)
 }
 
 fn parse_ascii(
