@@ -755,16 +755,7 @@ async fn an_empty_tf_is_refused_and_one_transparent_point_shows_the_environment(
         .text_where(|m| matches!(m, ServerMessage::Error { .. }))
         .await
         .unwrap();
-    assert!(
-        matches!(
-            refused,
-            ServerMessage::Error {
-                code: ErrorCode::BadValue,
-                ..
-            }
-        ),
-        "{refused:?}"
-    );
+    assert_error(&refused, ErrorCode::BadValue);
     client
         .send_json(json!({"type": "tf", "points": [{"value": 0.5, "color": [1.0, 1.0, 1.0], "opacity": 0.0}]}))
         .await
