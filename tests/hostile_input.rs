@@ -6,6 +6,9 @@
 //! range (its echo to other viewers parses back equal); a loader allocates in proportion to
 //! the file it reads, never to the sizes a header declares.
 
+#[path = "../fuzz/fuzz_targets/raw_layout.rs"]
+mod raw_layout;
+
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 use std::path::{Path, PathBuf};
@@ -914,55 +917,21 @@ fn fuzz_regressions_replay() {
     );
 }
 
-/// The `load_raw` fuzz target's reading of its input (its first 16 bytes choose the layout).
+/// Replays a kept `load_raw` fuzz input, read as the fuzz target reads it.
 fn replay_raw(data: &[u8]) {
-    use voxlight_volumes::{Endian, SampleType, load_raw_file};
-    let Some((params, body)) = data.split_first_chunk::<16>() else {
+    use voxlight_volumes::load_raw_file;
+    let Some((layout, body)) = raw_layout::raw_layout(data) else {
         return;
-    };
-    let u16_at = |i: usize| u16::from_le_bytes([params[i], params[i + 1]]) as u32;
-    let wide = params[15] & 0x80 != 0;
-    let dim = |i: usize| {
-        if wide {
-            (u16_at(i) << 16) | u16_at(i)
-        } else {
-            u16_at(i)
-        }
-    };
-    let sample = [
-        SampleType::U8,
-        SampleType::I8,
-        SampleType::U16,
-        SampleType::I16,
-        SampleType::U32,
-        SampleType::I32,
-        SampleType::F32,
-        SampleType::F64,
-    ][(params[6] & 7) as usize];
-    let endian = if params[6] & 8 == 0 {
-        Endian::Little
-    } else {
-        Endian::Big
-    };
-    let spacing = [
-        f32::from_le_bytes([params[7], params[8], params[9], params[10]]),
-        1.0,
-        if params[15] & 1 == 0 { 1.0 } else { f32::NAN },
-    ];
-    let header_bytes = if params[15] & 2 == 0 {
-        u16_at(11) as u64
-    } else {
-        u64::MAX - u16_at(11) as u64
     };
     let path = scratch().join("replay.raw");
     std::fs::write(&path, body).expect("scratch file");
     if let Ok(raw) = load_raw_file(
         &path,
-        [dim(0), dim(2), dim(4)],
-        sample,
-        endian,
-        spacing,
-        header_bytes,
+        layout.dims,
+        layout.sample,
+        layout.endian,
+        layout.spacing,
+        layout.header_bytes,
     ) {
         let volume = raw.normalize("replay");
         assert!(
