@@ -8,7 +8,16 @@
 // extinction coefficients per half-axis (Eq. 6); its radii follow from them when the requests
 // pass stores it. Rust twin: server/engine/src/techniques/irradiance/gpu.rs.
 
-#import irradiance/common
+#import irradiance/paths
+
+@group(0) @binding(0) var<uniform> scene: SceneUniforms;
+@group(0) @binding(1) var volume_tex: texture_3d<f32>;
+@group(0) @binding(2) var<storage, read> tf_lut: array<vec4<f32>>;
+@group(0) @binding(3) var<uniform> lights: array<GpuLight, MAX_LIGHTS>;
+@group(0) @binding(5) var<storage, read> cell_max_opacity: array<f32>;
+@group(0) @binding(6) var<uniform> params: IrradianceParams;
+@group(0) @binding(14) var<storage, read_write> requests: array<Request>;
+@group(0) @binding(15) var<storage, read> cell_bins: array<vec2<u32>>;
 
 const SAMPLES_PER_ROUND: u32 = 9u;
 

@@ -6,6 +6,13 @@
 
 #import irradiance/common
 
+@group(0) @binding(0) var<uniform> scene: SceneUniforms;
+@group(0) @binding(4) var<storage, read_write> accum: array<vec4<f32>>;
+@group(0) @binding(6) var<uniform> params: IrradianceParams;
+@group(0) @binding(7) var<uniform> dispatch: DispatchInfo;
+@group(0) @binding(12) var<storage, read_write> pixel_aux: array<vec4<f32>>;
+@group(0) @binding(13) var<storage, read_write> blocks: array<u32>;
+
 const PRIORITY_UNSAMPLED: f32 = 1e30;
 
 var<workgroup> gains: array<f32, 128>;

@@ -9,7 +9,25 @@
 // point lights' direct light is traced at every event and the cache holds only the rest.
 // Rust twin: server/engine/src/techniques/irradiance/gpu.rs.
 
-#import irradiance/common
+#import irradiance/paths
+#import irradiance/cache
+
+@group(0) @binding(0) var<uniform> scene: SceneUniforms;
+@group(0) @binding(1) var volume_tex: texture_3d<f32>;
+@group(0) @binding(2) var<storage, read> tf_lut: array<vec4<f32>>;
+@group(0) @binding(3) var<uniform> lights: array<GpuLight, MAX_LIGHTS>;
+@group(0) @binding(4) var<storage, read_write> accum: array<vec4<f32>>;
+@group(0) @binding(5) var<storage, read> cell_max_opacity: array<f32>;
+@group(0) @binding(6) var<uniform> params: IrradianceParams;
+@group(0) @binding(7) var<uniform> dispatch: DispatchInfo;
+@group(0) @binding(8) var<storage, read_write> entries: array<CacheEntry>;
+@group(0) @binding(9) var<storage, read_write> radii: array<atomic<u32>>;
+@group(0) @binding(10) var<storage, read> octree: array<u32>;
+@group(0) @binding(11) var<storage, read_write> words: array<atomic<u32>>;
+@group(0) @binding(12) var<storage, read_write> pixel_aux: array<vec4<f32>>;
+@group(0) @binding(13) var<storage, read_write> blocks: array<u32>;
+@group(0) @binding(15) var<storage, read> cell_bins: array<vec2<u32>>;
+@group(0) @binding(16) var<storage, read_write> bounds: array<vec4<f32>>;
 
 var<workgroup> block_rays: atomic<u32>;
 var<workgroup> block_misses: atomic<u32>;

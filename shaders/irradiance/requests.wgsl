@@ -8,7 +8,21 @@
 // run is repeatable.
 // Rust twin: server/engine/src/techniques/irradiance/gpu.rs.
 
+#import shared/volume
+#import shared/medium
 #import irradiance/common
+
+@group(0) @binding(0) var<uniform> scene: SceneUniforms;
+@group(0) @binding(1) var volume_tex: texture_3d<f32>;
+@group(0) @binding(2) var<storage, read> tf_lut: array<vec4<f32>>;
+@group(0) @binding(6) var<uniform> params: IrradianceParams;
+@group(0) @binding(8) var<storage, read_write> entries: array<CacheEntry>;
+@group(0) @binding(9) var<storage, read_write> radii: array<atomic<u32>>;
+@group(0) @binding(11) var<storage, read_write> words: array<atomic<u32>>;
+@group(0) @binding(12) var<storage, read_write> pixel_aux: array<vec4<f32>>;
+@group(0) @binding(14) var<storage, read_write> requests: array<Request>;
+@group(0) @binding(15) var<storage, read> cell_bins: array<vec2<u32>>;
+@group(0) @binding(16) var<storage, read_write> bounds: array<vec4<f32>>;
 
 const WG: u32 = 256u;
 // Lock states (words at node_held_offset / block_held_offset).
@@ -17,6 +31,54 @@ const LOCK_COOLING: u32 = 2u;
 
 var<workgroup> scan_buf: array<u32, 256>;
 var<workgroup> start_entries: u32;
+
+// Δ for an entry centred at p: params.delta, or less where a mean free path is shorter.
+fn entry_delta(p: vec3<f32>) -> f32 {
+    let sigma_t = medium_at(p).a;
+    if (params.delta_free_paths <= 0.0 || sigma_t <= 0.0) {
+        return params.delta;
+    }
+    return clamp(params.delta_free_paths / sigma_t, 0.25 * params.voxel, params.delta);
+}
+
+// Direction of the extinction gradient at p by central differences one voxel apart: the axis
+// an entry's local frame is oriented along (the paper's §4.2). +z where the medium is flat.
+fn extinction_normal(p: vec3<f32>) -> vec3<f32> {
+    let h = params.voxel;
+    let gradient = vec3<f32>(
+        medium_at(p + vec3<f32>(h, 0.0, 0.0)).a - medium_at(p - vec3<f32>(h, 0.0, 0.0)).a,
+        medium_at(p + vec3<f32>(0.0, h, 0.0)).a - medium_at(p - vec3<f32>(0.0, h, 0.0)).a,
+        medium_at(p + vec3<f32>(0.0, 0.0, h)).a - medium_at(p - vec3<f32>(0.0, 0.0, h)).a,
+    );
+    let len = length(gradient);
+    if (len <= 1e-12) {
+        return vec3<f32>(0.0, 0.0, 1.0);
+    }
+    return gradient / len;
+}
+
+// How far along one half-axis an entry's zone may reach before the medium differs from its
+// centre's: the extrapolation's log-irradiance gradient is the centre's, the true one changes
+// with the extinction, so the walk stops where ∫|σt(x) − σt(x0)| dx exceeds ln(1 + ε) (a
+// zone in soft tissue does not reach into the bone beside it). Half-voxel steps.
+fn extinction_reach(x0: vec3<f32>, axis: vec3<f32>, limit: f32) -> f32 {
+    let sigma0 = medium_at(x0).a;
+    let tolerance = log(1.0 + params.epsilon);
+    let step = 0.5 * params.voxel;
+    var excess = 0.0;
+    var s = 0.0;
+    loop {
+        if (s >= limit) {
+            return limit;
+        }
+        s += step;
+        excess += abs(medium_at(x0 + axis * s).a - sigma0) * step;
+        if (excess > tolerance) {
+            return max(s - step, params.min_radius);
+        }
+    }
+    return limit;
+}
 
 // Exclusive prefix sum of `value` over the workgroup, and the total (uniform).
 fn exclusive_scan(t: u32, value: u32) -> vec2<u32> {

@@ -8,7 +8,22 @@
 // that estimate's 95% interval (widened by the threshold) loses the point too. Rust twin:
 // server/engine/src/techniques/irradiance/gpu.rs.
 
-#import irradiance/common
+#import irradiance/paths
+#import irradiance/cache
+
+@group(0) @binding(0) var<uniform> scene: SceneUniforms;
+@group(0) @binding(1) var volume_tex: texture_3d<f32>;
+@group(0) @binding(2) var<storage, read> tf_lut: array<vec4<f32>>;
+@group(0) @binding(3) var<uniform> lights: array<GpuLight, MAX_LIGHTS>;
+@group(0) @binding(5) var<storage, read> cell_max_opacity: array<f32>;
+@group(0) @binding(6) var<uniform> params: IrradianceParams;
+@group(0) @binding(7) var<uniform> dispatch: DispatchInfo;
+@group(0) @binding(8) var<storage, read_write> entries: array<CacheEntry>;
+@group(0) @binding(9) var<storage, read_write> radii: array<atomic<u32>>;
+@group(0) @binding(10) var<storage, read> octree: array<u32>;
+@group(0) @binding(11) var<storage, read_write> words: array<atomic<u32>>;
+@group(0) @binding(15) var<storage, read> cell_bins: array<vec2<u32>>;
+@group(0) @binding(16) var<storage, read_write> bounds: array<vec4<f32>>;
 
 // Shrinks entry e's radii in the octant of x so that x lies just outside its zone: r_i − s·|l_i|
 // for the smallest s with Σ l_i² / (r_i − s·|l_i|)² ≥ 1 (bisection).

@@ -1,30 +1,14 @@
-// Shared pieces: the medium at a world point, and 8³ macrocells for empty-space skipping and
-// majorants. A pass that includes this declares
-// `scene: SceneUniforms` and `cell_max_opacity: array<f32>` (the largest opacity any trilinear
-// sample in each cell can classify to under the current TF; server/engine/src/macrocell.rs).
+// Shared pieces: 8³ macrocells for empty-space skipping and majorants. A pass that includes
+// this also includes shared/volume.wgsl and declares `scene: SceneUniforms` and
+// `cell_max_opacity: array<f32>` (the largest opacity any trilinear sample in each cell can
+// classify to under the current TF; server/engine/src/macrocell.rs).
 
-// Box-relative position of world point p.
-fn box_relative(p: vec3<f32>) -> vec3<f32> {
-    return (p - scene.box_min) / (scene.box_max - scene.box_min);
-}
-
-// Albedo (rgb) and extinction sigma_t (a) at world position p.
-fn medium_at(p: vec3<f32>) -> vec4<f32> {
-    let c = classify(sample_volume(box_relative(p)));
-    return vec4<f32>(c.rgb, c.a * scene.density_scale);
-}
+#import shared/medium
 
 // Majorant of sigma_t over cell c (delta and ratio tracking).
 fn cell_majorant(c: vec3<u32>) -> f32 {
     let index = (c.z * scene.cell_dims.y + c.y) * scene.cell_dims.x + c.x;
     return cell_max_opacity[index] * scene.density_scale;
-}
-
-// Macrocell containing box-relative position u.
-fn cell_of(u: vec3<f32>) -> vec3<u32> {
-    let dims = vec3<f32>(textureDimensions(volume_tex));
-    let voxel = vec3<u32>(max(u * dims, vec3<f32>(0.0)));
-    return min(voxel / scene.cell_voxels, scene.cell_dims - vec3<u32>(1u));
 }
 
 // True when nothing in cell c can scatter or absorb: samples there contribute exactly zero.

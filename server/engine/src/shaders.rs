@@ -11,6 +11,7 @@ pub const COMMON: &str = include_str!("../../../shaders/shared/common.wgsl");
 pub const VOLUME: &str = include_str!("../../../shaders/shared/volume.wgsl");
 pub const SCENE: &str = include_str!("../../../shaders/shared/scene.wgsl");
 pub const LIGHTS: &str = include_str!("../../../shaders/shared/lights.wgsl");
+pub const MEDIUM: &str = include_str!("../../../shaders/shared/medium.wgsl");
 pub const MACROCELL: &str = include_str!("../../../shaders/shared/macrocell.wgsl");
 pub const TRACKING: &str = include_str!("../../../shaders/shared/tracking.wgsl");
 pub const PATH: &str = include_str!("../../../shaders/shared/path.wgsl");
@@ -27,6 +28,8 @@ pub const PHOTON_GRID: &str = include_str!("../../../shaders/photon/grid.wgsl");
 pub const PHOTON_GATHER: &str = include_str!("../../../shaders/photon/gather.wgsl");
 pub const PHOTON_SCATTER: &str = include_str!("../../../shaders/photon/scatter.wgsl");
 pub const IRRADIANCE_COMMON: &str = include_str!("../../../shaders/irradiance/common.wgsl");
+pub const IRRADIANCE_CACHE: &str = include_str!("../../../shaders/irradiance/cache.wgsl");
+pub const IRRADIANCE_PATHS: &str = include_str!("../../../shaders/irradiance/paths.wgsl");
 pub const IRRADIANCE_RENDER: &str = include_str!("../../../shaders/irradiance/render.wgsl");
 pub const IRRADIANCE_CREATE: &str = include_str!("../../../shaders/irradiance/create.wgsl");
 pub const IRRADIANCE_REQUESTS: &str = include_str!("../../../shaders/irradiance/requests.wgsl");
@@ -43,6 +46,7 @@ const FILES: &[(&str, &str)] = &[
     ("shared/volume", VOLUME),
     ("shared/scene", SCENE),
     ("shared/lights", LIGHTS),
+    ("shared/medium", MEDIUM),
     ("shared/macrocell", MACROCELL),
     ("shared/tracking", TRACKING),
     ("shared/path", PATH),
@@ -59,6 +63,8 @@ const FILES: &[(&str, &str)] = &[
     ("photon/gather", PHOTON_GATHER),
     ("photon/scatter", PHOTON_SCATTER),
     ("irradiance/common", IRRADIANCE_COMMON),
+    ("irradiance/cache", IRRADIANCE_CACHE),
+    ("irradiance/paths", IRRADIANCE_PATHS),
     ("irradiance/render", IRRADIANCE_RENDER),
     ("irradiance/create", IRRADIANCE_CREATE),
     ("irradiance/requests", IRRADIANCE_REQUESTS),

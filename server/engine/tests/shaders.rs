@@ -3,25 +3,32 @@
 
 use std::mem::{offset_of, size_of};
 
+use voxlight_engine::passes::builder::Binding;
 use voxlight_engine::passes::preview::PreviewParams;
 use voxlight_engine::passes::tonemap::ToneParams;
+use voxlight_engine::passes::{estimator, preview, tonemap};
 use voxlight_engine::scene_gpu::{GpuLight, SceneUniforms};
 use voxlight_engine::shaders;
 use voxlight_engine::techniques::irradiance::gpu::{
-    CacheEntry, DispatchInfo, IrradianceParams, Request,
+    CacheEntry, DispatchInfo, IrradianceParams, Pass, Request,
 };
 use voxlight_engine::techniques::manylight::gpu::{ManylightParams, VirtualLight};
+use voxlight_engine::techniques::{manylight, photon};
 
 fn parse_and_validate(name: &str, source: &str) -> naga::Module {
+    validate(name, source).0
+}
+
+fn validate(name: &str, source: &str) -> (naga::Module, naga::valid::ModuleInfo) {
     let module = naga::front::wgsl::parse_str(source)
         .unwrap_or_else(|e| panic!("{name}: WGSL parse error:\n{}", e.emit_to_string(source)));
-    naga::valid::Validator::new(
+    let info = naga::valid::Validator::new(
         naga::valid::ValidationFlags::all(),
         naga::valid::Capabilities::all(),
     )
     .validate(&module)
     .unwrap_or_else(|e| panic!("{name}: validation error:\n{}", e.emit_to_string(source)));
-    module
+    (module, info)
 }
 
 #[test]
@@ -51,7 +58,7 @@ fn imports_compose_each_file_once_before_its_importers() {
     assert!(common_at < irradiance_common_at && irradiance_common_at < render_at);
     assert_eq!(
         shaders::imports(shaders::IRRADIANCE_RENDER).collect::<Vec<_>>(),
-        vec!["irradiance/common"]
+        vec!["irradiance/paths", "irradiance/cache"]
     );
 }
 
@@ -262,4 +269,157 @@ fn lights_are_a_uniform_array_of_max_lights() {
             "{name}"
         );
     }
+}
+
+/// What a WGSL global of group 0 holds, in the terms of `Binding` (a dynamic offset is not
+/// WGSL's to say: `Binding::Dynamic` declares a uniform).
+fn declared_kind(module: &naga::Module, var: &naga::GlobalVariable) -> &'static str {
+    match var.space {
+        naga::AddressSpace::Uniform => "uniform",
+        naga::AddressSpace::Storage { access } if access.contains(naga::StorageAccess::STORE) => {
+            "read_write"
+        }
+        naga::AddressSpace::Storage { .. } => "read",
+        naga::AddressSpace::Handle => match module.types[var.ty].inner {
+            naga::TypeInner::Image {
+                dim: naga::ImageDimension::D3,
+                arrayed: false,
+                class:
+                    naga::ImageClass::Sampled {
+                        kind: naga::ScalarKind::Float,
+                        multi: false,
+                    },
+            } => "volume",
+            ref other => panic!("{:?}: unexpected handle {other:?}", var.name),
+        },
+        other => panic!("{:?}: unexpected address space {other:?}", var.name),
+    }
+}
+
+fn rust_kind(binding: Binding) -> &'static str {
+    match binding {
+        Binding::Uniform | Binding::Dynamic(_) => "uniform",
+        Binding::Read => "read",
+        Binding::ReadWrite => "read_write",
+        Binding::Volume => "volume",
+    }
+}
+
+/// Each binding a composed shader declares: its number, what it holds and its global.
+fn declared_bindings(
+    name: &str,
+    module: &naga::Module,
+) -> Vec<(u32, &'static str, naga::Handle<naga::GlobalVariable>)> {
+    let mut declared: Vec<_> = module
+        .global_variables
+        .iter()
+        .filter_map(|(handle, var)| {
+            let binding = var.binding.as_ref()?;
+            assert_eq!(binding.group, 0, "{name}: {:?} is not in group 0", var.name);
+            Some((binding.binding, declared_kind(module, var), handle))
+        })
+        .collect();
+    declared.sort_by_key(|d| d.0);
+    declared
+}
+
+/// The WGSL struct size of a `Binding::Dynamic` record is the one the layout gives.
+fn assert_record_size(
+    name: &str,
+    module: &naga::Module,
+    global: naga::Handle<naga::GlobalVariable>,
+    size: u64,
+) {
+    let ty = &module.types[module.global_variables[global].ty];
+    assert_eq!(
+        ty.inner.size(module.to_ctx()) as u64,
+        size,
+        "{name}: record size of {:?}",
+        ty.name
+    );
+}
+
+/// Every shader's bindings are in its Rust bind group layout, with the same numbers and
+/// kinds: where one layout serves several passes, each declares a part of it.
+#[test]
+fn every_declared_binding_is_in_its_rust_layout() {
+    let shared: [(&str, &[Binding]); 12] = [
+        ("raymarch", &estimator::BINDINGS),
+        ("pathtrace", &estimator::BINDINGS),
+        ("tonemap", &tonemap::BINDINGS),
+        ("preview/light", &preview::BINDINGS),
+        ("preview/view", &preview::BINDINGS),
+        ("manylight/vls", &manylight::gpu::BINDINGS),
+        ("manylight/avsm", &manylight::gpu::BINDINGS),
+        ("manylight/gather", &manylight::gpu::BINDINGS),
+        ("photon/trace", &photon::gpu::BINDINGS),
+        ("photon/grid", &photon::gpu::BINDINGS),
+        ("photon/gather", &photon::gpu::BINDINGS),
+        ("photon/scatter", &photon::gpu::BINDINGS),
+    ];
+    for (name, source) in shaders::all() {
+        if name.starts_with("irradiance/") {
+            continue; // one layout per pass: the next test
+        }
+        let (_, layout) = shared
+            .iter()
+            .find(|(n, _)| *n == name)
+            .unwrap_or_else(|| panic!("{name}: no Rust binding table in this test"));
+        let module = parse_and_validate(name, &source);
+        for (number, kind, global) in declared_bindings(name, &module) {
+            let binding = *layout
+                .get(number as usize)
+                .unwrap_or_else(|| panic!("{name}: binding {number} is not in the layout"));
+            assert_eq!(kind, rust_kind(binding), "{name}: binding {number}");
+            if let Binding::Dynamic(size) = binding {
+                assert_record_size(name, &module, global, size);
+            }
+        }
+    }
+}
+
+/// Each pass of `irradiance` declares exactly the bindings of its own layout
+/// (`Pass::layout`), and reads every one of them.
+#[test]
+fn each_irradiance_pass_declares_and_reads_exactly_its_bindings() {
+    let mut names: Vec<_> = shaders::all()
+        .into_iter()
+        .map(|(n, _)| n)
+        .filter(|n| n.starts_with("irradiance/"))
+        .collect();
+    for pass in Pass::ALL {
+        let name = pass.label();
+        let (module, info) = validate(name, &shaders::irradiance(pass.source()));
+        let declared = declared_bindings(name, &module);
+        let expected: Vec<_> = pass.layout().map(|(n, b)| (n, rust_kind(b))).collect();
+        assert_eq!(
+            declared.iter().map(|d| (d.0, d.1)).collect::<Vec<_>>(),
+            expected,
+            "{name}: WGSL bindings vs Pass::layout"
+        );
+        let main = module
+            .entry_points
+            .iter()
+            .position(|e| e.name == "main")
+            .unwrap_or_else(|| panic!("{name}: no entry point main"));
+        for &(number, _, global) in &declared {
+            assert!(
+                !info.get_entry_point(main)[global].is_empty(),
+                "{name}: binding {number} ({:?}) is declared but never read",
+                module.global_variables[global].name
+            );
+        }
+        for (number, binding) in pass.layout() {
+            if let Binding::Dynamic(size) = binding {
+                let global = declared.iter().find(|d| d.0 == number).unwrap().2;
+                assert_record_size(name, &module, global, size);
+            }
+        }
+        let file = format!("irradiance/{}", name.trim_start_matches("irradiance "));
+        names.retain(|n| *n != file);
+    }
+    assert!(
+        names.is_empty(),
+        "irradiance shaders without a Pass: {names:?}"
+    );
 }

@@ -3,12 +3,19 @@
 //! buffer. Binds `SceneUniforms` and `GpuLight` (crate::scene_gpu), the volume texture, the TF
 //! lookup table, the accumulation buffer and the macrocells' largest opacity (crate::macrocell).
 
-use super::{compute_pipeline, dispatch_image, storage_entry, uniform_entry, volume_entry};
+use super::builder::{Binding, Layout, buffer, texture};
+use super::dispatch_image;
 use crate::Gpu;
+
+/// What bindings 0–5 hold (the techniques that build on an estimator bind these first).
+pub const BINDINGS: [Binding; 6] = {
+    use Binding::*;
+    [Uniform, Volume, Read, Uniform, ReadWrite, Read]
+};
 
 pub struct EstimatorPass {
     pub pipeline: wgpu::ComputePipeline,
-    pub layout: wgpu::BindGroupLayout,
+    pub layout: Layout,
     pub label: &'static str,
 }
 
@@ -22,60 +29,33 @@ pub struct EstimatorBindings<'a> {
     pub cell_max_opacity: &'a wgpu::Buffer,
 }
 
+impl<'a> EstimatorBindings<'a> {
+    /// Bind group entries 0–5 (`BINDINGS`).
+    pub fn entries(&self) -> [wgpu::BindGroupEntry<'a>; 6] {
+        [
+            buffer(0, self.scene),
+            texture(1, self.volume),
+            buffer(2, self.tf_lut),
+            buffer(3, self.lights),
+            buffer(4, self.accum),
+            buffer(5, self.cell_max_opacity),
+        ]
+    }
+}
+
 impl EstimatorPass {
     /// A pipeline for `source` (entry point `main`) with the estimator bindings.
     pub fn new(gpu: &Gpu, label: &'static str, source: &str) -> Self {
-        let (pipeline, layout) = compute_pipeline(
-            gpu,
-            label,
-            source,
-            &[
-                uniform_entry(0),
-                volume_entry(1),
-                storage_entry(2, true),
-                uniform_entry(3),
-                storage_entry(4, false),
-                storage_entry(5, true),
-            ],
-        );
+        let layout = Layout::new(gpu, label, &BINDINGS);
         Self {
-            pipeline,
+            pipeline: layout.pipeline(gpu, label, source),
             layout,
             label,
         }
     }
 
     pub fn bind_group(&self, gpu: &Gpu, b: &EstimatorBindings) -> wgpu::BindGroup {
-        gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some(self.label),
-            layout: &self.layout,
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: b.scene.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: wgpu::BindingResource::TextureView(b.volume),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: b.tf_lut.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 3,
-                    resource: b.lights.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 4,
-                    resource: b.accum.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 5,
-                    resource: b.cell_max_opacity.as_entire_binding(),
-                },
-            ],
-        })
+        self.layout.bind_group(gpu, self.label, &b.entries())
     }
 
     pub fn encode(

@@ -1,12 +1,13 @@
-//! The interactive preview's two passes (shaders/preview_light.wgsl, shaders/preview_view.wgsl,
-//! declarations in shaders/preview_common.wgsl): the light volume, then one composited view ray
+//! The interactive preview's two passes (shaders/preview/light.wgsl, shaders/preview/view.wgsl,
+//! declarations in shaders/preview/common.wgsl): the light volume, then one composited view ray
 //! per preview pixel. Both share one bind group layout: the estimator's scene, volume, TF,
 //! lights and macrocells, plus `PreviewParams`, the light volume and the preview image (with
 //! its approximate multiple scattering kept apart for the brightness match).
 
 use bytemuck::{Pod, Zeroable};
 
-use super::{TILE, layout_pipeline, storage_entry, uniform_entry, volume_entry};
+use super::TILE;
+use super::builder::{Binding, Layout, buffer, dispatch, texture};
 use crate::Gpu;
 
 /// Matches `PreviewParams` in preview/common.wgsl.
@@ -28,10 +29,19 @@ pub struct PreviewParams {
 /// Workgroup of the light-volume pass (`@workgroup_size(8, 8, 1)`: one grid plane per layer).
 const LIGHT_TILE: u32 = 8;
 
+/// What bindings 0–8 hold: the estimator's scene, volume, TF, lights and macrocells (4 here),
+/// `PreviewParams`, the light volume, the image and its multiple scattering.
+pub const BINDINGS: [Binding; 9] = {
+    use Binding::*;
+    [
+        Uniform, Volume, Read, Uniform, Read, Uniform, ReadWrite, ReadWrite, ReadWrite,
+    ]
+};
+
 pub struct PreviewPasses {
     pub light: wgpu::ComputePipeline,
     pub view: wgpu::ComputePipeline,
-    pub layout: wgpu::BindGroupLayout,
+    pub layout: Layout,
 }
 
 /// The buffers and texture both passes bind.
@@ -49,72 +59,32 @@ pub struct PreviewBindings<'a> {
 
 impl PreviewPasses {
     pub fn new(gpu: &Gpu) -> Self {
-        let layout = gpu
-            .device
-            .create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-                label: Some("preview"),
-                entries: &[
-                    uniform_entry(0),
-                    volume_entry(1),
-                    storage_entry(2, true),
-                    uniform_entry(3),
-                    storage_entry(4, true),
-                    uniform_entry(5),
-                    storage_entry(6, false),
-                    storage_entry(7, false),
-                    storage_entry(8, false),
-                ],
-            });
-        let pipeline_layout = gpu
-            .device
-            .create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-                label: Some("preview"),
-                bind_group_layouts: &[Some(&layout)],
-                immediate_size: 0,
-            });
-        let shaders = crate::shaders::preview;
+        let layout = Layout::new(gpu, "preview", &BINDINGS);
+        let source = crate::shaders::preview;
         Self {
-            light: layout_pipeline(
+            light: layout.pipeline(
                 gpu,
                 "preview light volume",
-                &shaders(crate::shaders::PREVIEW_LIGHT),
-                &pipeline_layout,
+                &source(crate::shaders::PREVIEW_LIGHT),
             ),
-            view: layout_pipeline(
-                gpu,
-                "preview view",
-                &shaders(crate::shaders::PREVIEW_VIEW),
-                &pipeline_layout,
-            ),
+            view: layout.pipeline(gpu, "preview view", &source(crate::shaders::PREVIEW_VIEW)),
             layout,
         }
     }
 
     pub fn bind_group(&self, gpu: &Gpu, b: &PreviewBindings) -> wgpu::BindGroup {
-        fn buffer(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
-            wgpu::BindGroupEntry {
-                binding,
-                resource: buffer.as_entire_binding(),
-            }
-        }
-        gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("preview"),
-            layout: &self.layout,
-            entries: &[
-                buffer(0, b.scene),
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: wgpu::BindingResource::TextureView(b.volume),
-                },
-                buffer(2, b.tf_lut),
-                buffer(3, b.lights),
-                buffer(4, b.cell_max_opacity),
-                buffer(5, b.params),
-                buffer(6, b.light_volume),
-                buffer(7, b.image),
-                buffer(8, b.image_multiple),
-            ],
-        })
+        let entries = [
+            buffer(0, b.scene),
+            texture(1, b.volume),
+            buffer(2, b.tf_lut),
+            buffer(3, b.lights),
+            buffer(4, b.cell_max_opacity),
+            buffer(5, b.params),
+            buffer(6, b.light_volume),
+            buffer(7, b.image),
+            buffer(8, b.image_multiple),
+        ];
+        self.layout.bind_group(gpu, "preview", &entries)
     }
 
     /// `planes` grid planes of the light volume over `dims` grid points, from `params.z_offset`.
@@ -126,16 +96,17 @@ impl PreviewPasses {
         planes: u32,
         timestamp_writes: Option<wgpu::ComputePassTimestampWrites>,
     ) {
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("preview light volume"),
+        dispatch(
+            encoder,
+            "preview light volume",
+            &self.light,
+            (bind_group, &[]),
+            [
+                dims[0].div_ceil(LIGHT_TILE),
+                dims[1].div_ceil(LIGHT_TILE),
+                planes,
+            ],
             timestamp_writes,
-        });
-        pass.set_pipeline(&self.light);
-        pass.set_bind_group(0, bind_group, &[]);
-        pass.dispatch_workgroups(
-            dims[0].div_ceil(LIGHT_TILE),
-            dims[1].div_ceil(LIGHT_TILE),
-            planes,
         );
     }
 
@@ -148,12 +119,13 @@ impl PreviewPasses {
         (width, rows): (u32, u32),
         timestamp_writes: Option<wgpu::ComputePassTimestampWrites>,
     ) {
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("preview view"),
+        dispatch(
+            encoder,
+            "preview view",
+            &self.view,
+            (bind_group, &[]),
+            [width.div_ceil(TILE), rows.div_ceil(TILE), 1],
             timestamp_writes,
-        });
-        pass.set_pipeline(&self.view);
-        pass.set_bind_group(0, bind_group, &[]);
-        pass.dispatch_workgroups(width.div_ceil(TILE), rows.div_ceil(TILE), 1);
+        );
     }
 }

@@ -2,7 +2,8 @@
 
 use bytemuck::{Pod, Zeroable};
 
-use super::{compute_pipeline, dispatch_image, storage_entry, uniform_entry};
+use super::builder::{Binding, Layout, buffer};
+use super::dispatch_image;
 use crate::Gpu;
 
 /// Matches `ToneParams` in tonemap.wgsl.
@@ -15,23 +16,18 @@ pub struct ToneParams {
     pub pad0: u32,
 }
 
+/// What bindings 0–2 hold: the parameters, the HDR accumulation, the RGBA8 output.
+pub const BINDINGS: [Binding; 3] = [Binding::Uniform, Binding::Read, Binding::ReadWrite];
+
 pub struct TonemapPass {
     pub pipeline: wgpu::ComputePipeline,
-    pub layout: wgpu::BindGroupLayout,
+    pub layout: Layout,
 }
 
 impl TonemapPass {
     pub fn new(gpu: &Gpu) -> Self {
-        let (pipeline, layout) = compute_pipeline(
-            gpu,
-            "tonemap",
-            &crate::shaders::tonemap(),
-            &[
-                uniform_entry(0),
-                storage_entry(1, true),
-                storage_entry(2, false),
-            ],
-        );
+        let layout = Layout::new(gpu, "tonemap", &BINDINGS);
+        let pipeline = layout.pipeline(gpu, "tonemap", &crate::shaders::tonemap());
         Self { pipeline, layout }
     }
 
@@ -42,24 +38,8 @@ impl TonemapPass {
         accum: &wgpu::Buffer,
         rgba: &wgpu::Buffer,
     ) -> wgpu::BindGroup {
-        gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("tonemap"),
-            layout: &self.layout,
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: params.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: accum.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: rgba.as_entire_binding(),
-                },
-            ],
-        })
+        let entries = [buffer(0, params), buffer(1, accum), buffer(2, rgba)];
+        self.layout.bind_group(gpu, "tonemap", &entries)
     }
 
     pub fn encode(

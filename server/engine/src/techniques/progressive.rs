@@ -18,6 +18,7 @@ use std::time::{Duration, Instant};
 use voxlight_protocol::MAX_LIGHTS;
 
 use crate::gpu_timer::GpuTimer;
+use crate::passes::builder;
 use crate::passes::estimator::{EstimatorBindings, EstimatorPass};
 use crate::scene_gpu::{GpuLight, SceneUniforms, gpu_lights};
 use crate::technique::{StepReport, Technique, TechniqueStats};
@@ -119,37 +120,24 @@ impl Progressive {
         volume: Arc<GpuVolume>,
         scene: &Scene,
     ) -> Result<Self, EngineError> {
-        let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
-            engine.gpu.buffer(label, size, usage)
-        };
-        let scene_buf = buffer(
+        let gpu = &engine.gpu;
+        let (uniform, storage) = (wgpu::BufferUsages::UNIFORM, wgpu::BufferUsages::STORAGE);
+        let scene_buf = gpu.buffer(
             "estimator scene",
             size_of::<SceneUniforms>() as u64,
-            wgpu::BufferUsages::UNIFORM,
+            uniform,
         );
-        let tf_lut = buffer(
-            "estimator tf lut",
-            (TF_LUT_SIZE * 16) as u64,
-            wgpu::BufferUsages::STORAGE,
-        );
-        let lights = buffer(
-            "estimator lights",
-            (MAX_LIGHTS * size_of::<GpuLight>()) as u64,
-            wgpu::BufferUsages::UNIFORM,
-        );
+        let tf_lut = gpu.buffer("estimator tf lut", (TF_LUT_SIZE * 16) as u64, storage);
+        let lights_size = (MAX_LIGHTS * size_of::<GpuLight>()) as u64;
+        let lights = gpu.buffer("estimator lights", lights_size, uniform);
         let (width, height) = (scene.viewport.width, scene.viewport.height);
-        let accum = buffer(
-            "estimator accum",
-            accum_bytes(width, height),
-            wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-        );
-        let cell_max_opacity = buffer(
-            "estimator cell max opacity",
-            (volume.ranges.cell_count() * 4) as u64,
-            wgpu::BufferUsages::STORAGE,
-        );
+        let accum_size = accum_bytes(width, height);
+        let accum_usage = storage | wgpu::BufferUsages::COPY_SRC;
+        let accum = gpu.buffer("estimator accum", accum_size, accum_usage);
+        let cells_size = (volume.ranges.cell_count() * 4) as u64;
+        let cell_max_opacity = gpu.buffer("estimator cell max opacity", cells_size, storage);
         let bind_group = estimator.pass(engine).bind_group(
-            &engine.gpu,
+            gpu,
             &EstimatorBindings {
                 scene: &scene_buf,
                 volume: &volume.view,
@@ -191,12 +179,7 @@ impl Progressive {
     }
 
     fn encoder(&self, engine: &Engine) -> wgpu::CommandEncoder {
-        engine
-            .gpu
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some(self.estimator.name()),
-            })
+        builder::encoder(&engine.gpu, self.estimator.name())
     }
 
     /// Renders the next band of the iteration in progress and waits for it; returns its wall
@@ -367,12 +350,7 @@ impl Technique for Progressive {
             let batch = if budget.is_zero() { 1 } else { self.batch }.min(target - self.iteration);
             let batch_start = Instant::now();
             for i in 0..batch {
-                let uniforms = SceneUniforms::new(scene, &self.volume, self.iteration)
-                    .map_err(EngineError::InvalidScene)?;
-                engine
-                    .gpu
-                    .queue
-                    .write_buffer(&self.scene_buf, 0, bytemuck::bytes_of(&uniforms));
+                self.encode_uniforms(engine, scene)?;
                 let mut encoder = self.encoder(engine);
                 let last = i + 1 == batch;
                 let writes = self.timer.as_ref().and_then(|t| t.writes(i == 0, last));

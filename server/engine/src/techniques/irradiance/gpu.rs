@@ -1,12 +1,22 @@
 //! The five passes of technique `irradiance` (shaders/irradiance/*.wgsl): rendering, cache-entry
 //! creation rounds, the requests pass (claims → requests, finished requests → entries), the
-//! cache update and the rendering priorities. All bind the estimator's bindings 0–5
-//! (crate::passes::estimator) plus the technique's (6–16), through one bind group layout.
+//! cache update and the rendering priorities.
+//!
+//! - Bindings: the estimator's 0–5 (crate::passes::estimator) and the technique's 6–16, each
+//!   under one number and kind in every pass (`binding`, `BINDINGS`; irradiance/common.wgsl
+//!   says what each holds).
+//! - Each pass declares only the bindings it reads (`Pass::bindings`, the same list as its
+//!   WGSL's declarations; tests/shaders.rs compares them) and has a bind group layout and a
+//!   bind group of exactly those.
 
 use bytemuck::{Pod, Zeroable};
 
 use crate::Gpu;
-use crate::passes::{layout_pipeline, storage_entry, uniform_entry, volume_entry};
+use crate::passes::builder::{self, Binding, Layout, buffer, record};
+use crate::shaders::{
+    IRRADIANCE_CREATE, IRRADIANCE_PRIORITY, IRRADIANCE_RENDER, IRRADIANCE_REQUESTS,
+    IRRADIANCE_UPDATE,
+};
 
 /// Matches `IrradianceParams` in irradiance/common.wgsl.
 #[repr(C)]
@@ -150,14 +160,121 @@ pub const PRIORITY_UNSAMPLED: f32 = 1e30;
 /// Threads per workgroup of the update pass (one per block).
 pub const UPDATE_WORKGROUP: u32 = 64;
 
-pub struct IrradiancePasses {
-    pub layout: wgpu::BindGroupLayout,
-    pub render: wgpu::ComputePipeline,
-    pub create: wgpu::ComputePipeline,
-    pub requests: wgpu::ComputePipeline,
-    pub update: wgpu::ComputePipeline,
-    pub priority: wgpu::ComputePipeline,
+/// The technique's bindings by number, the same in every pass that declares one.
+pub mod binding {
+    pub const SCENE: u32 = 0;
+    pub const VOLUME: u32 = 1;
+    pub const TF_LUT: u32 = 2;
+    pub const LIGHTS: u32 = 3;
+    pub const ACCUM: u32 = 4;
+    /// The macrocells' largest opacity (`cell_max_opacity`).
+    pub const MACROCELLS: u32 = 5;
+    pub const PARAMS: u32 = 6;
+    pub const DISPATCH: u32 = 7;
+    pub const ENTRIES: u32 = 8;
+    pub const RADII: u32 = 9;
+    pub const OCTREE: u32 = 10;
+    pub const WORDS: u32 = 11;
+    pub const PIXEL_AUX: u32 = 12;
+    pub const BLOCKS: u32 = 13;
+    pub const REQUESTS: u32 = 14;
+    pub const CELL_BINS: u32 = 15;
+    pub const BOUNDS: u32 = 16;
 }
+
+/// What each binding holds, by number (`DispatchInfo` at a dynamic offset).
+pub const BINDINGS: [Binding; 17] = {
+    use Binding::*;
+    let dispatch = Dynamic(size_of::<DispatchInfo>() as u64);
+    [
+        Uniform, Volume, Read, Uniform, ReadWrite, Read, Uniform, dispatch, ReadWrite, ReadWrite,
+        Read, ReadWrite, ReadWrite, ReadWrite, ReadWrite, Read, ReadWrite,
+    ]
+};
+
+/// The five passes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Pass {
+    Render,
+    Create,
+    Requests,
+    Update,
+    Priority,
+}
+
+impl Pass {
+    pub const ALL: [Pass; 5] = [
+        Pass::Render,
+        Pass::Create,
+        Pass::Requests,
+        Pass::Update,
+        Pass::Priority,
+    ];
+
+    /// The label of its pipeline, layouts, bind group and compute passes.
+    pub fn label(self) -> &'static str {
+        match self {
+            Pass::Render => "irradiance render",
+            Pass::Create => "irradiance create",
+            Pass::Requests => "irradiance requests",
+            Pass::Update => "irradiance update",
+            Pass::Priority => "irradiance priority",
+        }
+    }
+
+    /// Its entry file (`crate::shaders::irradiance` composes it).
+    pub fn source(self) -> &'static str {
+        match self {
+            Pass::Render => IRRADIANCE_RENDER,
+            Pass::Create => IRRADIANCE_CREATE,
+            Pass::Requests => IRRADIANCE_REQUESTS,
+            Pass::Update => IRRADIANCE_UPDATE,
+            Pass::Priority => IRRADIANCE_PRIORITY,
+        }
+    }
+
+    /// The bindings its WGSL declares (those it reads), in order.
+    pub fn bindings(self) -> &'static [u32] {
+        use binding::*;
+        match self {
+            Pass::Render => &[
+                SCENE, VOLUME, TF_LUT, LIGHTS, ACCUM, MACROCELLS, PARAMS, DISPATCH, ENTRIES, RADII,
+                OCTREE, WORDS, PIXEL_AUX, BLOCKS, CELL_BINS, BOUNDS,
+            ],
+            Pass::Create => &[
+                SCENE, VOLUME, TF_LUT, LIGHTS, MACROCELLS, PARAMS, REQUESTS, CELL_BINS,
+            ],
+            Pass::Requests => &[
+                SCENE, VOLUME, TF_LUT, PARAMS, ENTRIES, RADII, WORDS, PIXEL_AUX, REQUESTS,
+                CELL_BINS, BOUNDS,
+            ],
+            Pass::Update => &[
+                SCENE, VOLUME, TF_LUT, LIGHTS, MACROCELLS, PARAMS, DISPATCH, ENTRIES, RADII,
+                OCTREE, WORDS, CELL_BINS, BOUNDS,
+            ],
+            Pass::Priority => &[SCENE, ACCUM, PARAMS, DISPATCH, PIXEL_AUX, BLOCKS],
+        }
+    }
+
+    /// Its bindings with what each holds.
+    pub fn layout(self) -> impl Iterator<Item = (u32, Binding)> {
+        self.bindings().iter().map(|&n| (n, BINDINGS[n as usize]))
+    }
+}
+
+/// One pass's pipeline and the bind group layout of its bindings.
+pub struct PassPipeline {
+    pub pipeline: wgpu::ComputePipeline,
+    pub layout: Layout,
+}
+
+pub struct IrradiancePasses {
+    /// By `Pass`.
+    passes: [PassPipeline; 5],
+}
+
+/// The bind group of each pass, by `Pass`.
+pub struct IrradianceBindGroups([wgpu::BindGroup; 5]);
 
 /// The buffers and texture the passes bind.
 pub struct IrradianceBindings<'a> {
@@ -175,114 +292,62 @@ pub struct IrradianceBindings<'a> {
     pub bounds: &'a wgpu::Buffer,
 }
 
+impl<'a> IrradianceBindings<'a> {
+    /// The bind group entry of binding `n`.
+    fn entry(&self, n: u32) -> wgpu::BindGroupEntry<'a> {
+        use binding::*;
+        let resource = match n {
+            SCENE..=MACROCELLS => return self.estimator.entries()[n as usize].clone(),
+            DISPATCH => return record(n, self.dispatch, size_of::<DispatchInfo>() as u64),
+            PARAMS => self.params,
+            ENTRIES => self.entries,
+            RADII => self.radii,
+            OCTREE => self.octree,
+            WORDS => self.words,
+            PIXEL_AUX => self.pixel_aux,
+            BLOCKS => self.blocks,
+            REQUESTS => self.requests,
+            CELL_BINS => self.cell_bins,
+            BOUNDS => self.bounds,
+            _ => panic!("technique irradiance has no binding {n}"),
+        };
+        buffer(n, resource)
+    }
+}
+
 impl IrradiancePasses {
     pub fn new(gpu: &Gpu) -> Self {
-        let device = &gpu.device;
-        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("irradiance"),
-            entries: &[
-                uniform_entry(0),
-                volume_entry(1),
-                storage_entry(2, true),
-                uniform_entry(3),
-                storage_entry(4, false),
-                storage_entry(5, true),
-                uniform_entry(6),
-                wgpu::BindGroupLayoutEntry {
-                    binding: 7,
-                    visibility: wgpu::ShaderStages::COMPUTE,
-                    ty: wgpu::BindingType::Buffer {
-                        ty: wgpu::BufferBindingType::Uniform,
-                        has_dynamic_offset: true,
-                        min_binding_size: wgpu::BufferSize::new(size_of::<DispatchInfo>() as u64),
-                    },
-                    count: None,
-                },
-                storage_entry(8, false),
-                storage_entry(9, false),
-                storage_entry(10, true),
-                storage_entry(11, false),
-                storage_entry(12, false),
-                storage_entry(13, false),
-                storage_entry(14, false),
-                storage_entry(15, true),
-                storage_entry(16, false),
-            ],
-        });
-        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("irradiance"),
-            bind_group_layouts: &[Some(&layout)],
-            immediate_size: 0,
-        });
-        use crate::shaders::{
-            IRRADIANCE_CREATE, IRRADIANCE_PRIORITY, IRRADIANCE_RENDER, IRRADIANCE_REQUESTS,
-            IRRADIANCE_UPDATE, irradiance,
-        };
-        let pipeline = |label: &str, pass: &str| {
-            layout_pipeline(gpu, label, &irradiance(pass), &pipeline_layout)
-        };
-        Self {
-            render: pipeline("irradiance render", IRRADIANCE_RENDER),
-            create: pipeline("irradiance create", IRRADIANCE_CREATE),
-            requests: pipeline("irradiance requests", IRRADIANCE_REQUESTS),
-            update: pipeline("irradiance update", IRRADIANCE_UPDATE),
-            priority: pipeline("irradiance priority", IRRADIANCE_PRIORITY),
-            layout,
-        }
-    }
-
-    pub fn bind_group(&self, gpu: &Gpu, b: &IrradianceBindings) -> wgpu::BindGroup {
-        let e = &b.estimator;
-        fn buffer(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
-            wgpu::BindGroupEntry {
-                binding,
-                resource: buffer.as_entire_binding(),
+        let passes = Pass::ALL.map(|pass| {
+            let layout = Layout::numbered(gpu, pass.label(), pass.layout());
+            let source = crate::shaders::irradiance(pass.source());
+            PassPipeline {
+                pipeline: layout.pipeline(gpu, pass.label(), &source),
+                layout,
             }
-        }
-        gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("irradiance"),
-            layout: &self.layout,
-            entries: &[
-                buffer(0, e.scene),
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: wgpu::BindingResource::TextureView(e.volume),
-                },
-                buffer(2, e.tf_lut),
-                buffer(3, e.lights),
-                buffer(4, e.accum),
-                buffer(5, e.cell_max_opacity),
-                buffer(6, b.params),
-                wgpu::BindGroupEntry {
-                    binding: 7,
-                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                        buffer: b.dispatch,
-                        offset: 0,
-                        size: wgpu::BufferSize::new(size_of::<DispatchInfo>() as u64),
-                    }),
-                },
-                buffer(8, b.entries),
-                buffer(9, b.radii),
-                buffer(10, b.octree),
-                buffer(11, b.words),
-                buffer(12, b.pixel_aux),
-                buffer(13, b.blocks),
-                buffer(14, b.requests),
-                buffer(15, b.cell_bins),
-                buffer(16, b.bounds),
-            ],
-        })
+        });
+        Self { passes }
     }
 
-    /// Encodes one pass of `pipeline` with dispatch descriptor `slot` over `workgroups`, with
-    /// optional timestamps.
-    #[allow(clippy::too_many_arguments)]
+    pub fn pass(&self, pass: Pass) -> &PassPipeline {
+        &self.passes[pass as usize]
+    }
+
+    pub fn bind_groups(&self, gpu: &Gpu, b: &IrradianceBindings) -> IrradianceBindGroups {
+        IrradianceBindGroups(Pass::ALL.map(|pass| {
+            let entries: Vec<_> = pass.bindings().iter().map(|&n| b.entry(n)).collect();
+            self.pass(pass)
+                .layout
+                .bind_group(gpu, pass.label(), &entries)
+        }))
+    }
+
+    /// Encodes one compute pass of `pass` with dispatch descriptor `slot` (where it reads one)
+    /// over `workgroups`, with optional timestamps.
     pub fn encode_timed(
         &self,
         encoder: &mut wgpu::CommandEncoder,
-        label: &str,
-        pipeline: &wgpu::ComputePipeline,
-        bind_group: &wgpu::BindGroup,
+        pass: Pass,
+        bind_groups: &IrradianceBindGroups,
         slot: u32,
         workgroups: u32,
         timestamp_writes: Option<wgpu::ComputePassTimestampWrites>,
@@ -290,12 +355,19 @@ impl IrradiancePasses {
         if workgroups == 0 {
             return;
         }
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some(label),
+        let offset = [(slot as u64 * DISPATCH_STRIDE) as u32];
+        let offsets: &[u32] = if pass.bindings().contains(&binding::DISPATCH) {
+            &offset
+        } else {
+            &[]
+        };
+        builder::dispatch(
+            encoder,
+            pass.label(),
+            &self.pass(pass).pipeline,
+            (&bind_groups.0[pass as usize], offsets),
+            [workgroups, 1, 1],
             timestamp_writes,
-        });
-        pass.set_pipeline(pipeline);
-        pass.set_bind_group(0, bind_group, &[(slot as u64 * DISPATCH_STRIDE) as u32]);
-        pass.dispatch_workgroups(workgroups, 1, 1);
+        );
     }
 }

@@ -42,8 +42,8 @@ use crate::techniques::irradiance::gpu::{
     COUNTER_ISSUED, COUNTER_LOST, COUNTER_MISSES, COUNTER_PENDING, COUNTER_REDUCTIONS,
     COUNTER_WORDS, CacheEntry, DISPATCH_STRIDE, DispatchInfo, FLAG_CACHE, FLAG_MARCHED_VIEW,
     FLAG_NO_CREATION, FLAG_SAMPLED_HISTORYGRAMS, FLAG_SCREEN_LOCKING, FLAG_TRACED_DIRECT,
-    FLAG_VALIDATE_HITS, IrradianceBindings, IrradianceParams, PRIORITY_UNSAMPLED, Request,
-    UPDATE_WORKGROUP,
+    FLAG_VALIDATE_HITS, IrradianceBindGroups, IrradianceBindings, IrradianceParams,
+    PRIORITY_UNSAMPLED, Pass, Request, UPDATE_WORKGROUP,
 };
 use crate::techniques::progressive::{Estimator, Progressive, accum_bytes};
 use crate::tf::{opacity_query_historygram, query_historygram};
@@ -549,7 +549,7 @@ pub struct Irradiance {
     layout: Layout,
     cache: CacheBuffers,
     pixels: PixelBuffers,
-    bind_group: wgpu::BindGroup,
+    bind_groups: IrradianceBindGroups,
     octree: Octree,
     root_min: [f32; 3],
     root_edge: f32,
@@ -692,14 +692,14 @@ impl Irradiance {
         gpu.queue
             .write_buffer(&cache.cell_bins, 0, bytemuck::cast_slice(&bins));
         let pixels = pixel_buffers(engine, width, height, &layout);
-        let bind_group = bind_group(engine, &base, &cache, &pixels);
+        let bind_groups = bind_groups(engine, &base, &cache, &pixels);
         let mut technique = Self {
             base,
             config,
             layout,
             cache,
             pixels,
-            bind_group,
+            bind_groups,
             octree: Octree::new(
                 root_min,
                 root_edge,
@@ -1180,10 +1180,7 @@ impl Irradiance {
     }
 
     fn encoder(engine: &Engine, label: &str) -> wgpu::CommandEncoder {
-        engine
-            .gpu
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) })
+        crate::passes::builder::encoder(&engine.gpu, label)
     }
 
     fn submit_and_time(
@@ -1309,23 +1306,14 @@ impl Irradiance {
         let mut encoder = Self::encoder(engine, "irradiance frame");
         let mut phase = |encoder: &mut wgpu::CommandEncoder,
                          index: usize,
-                         passes: &mut dyn Iterator<
-            Item = (&wgpu::ComputePipeline, &str, u32, u32),
-        >|
+                         passes: &mut dyn Iterator<Item = (Pass, u32, u32)>|
          -> Result<(), EngineError> {
-            let all: Vec<_> = passes.filter(|p| p.3 > 0).collect();
+            let all: Vec<_> = passes.filter(|p| p.2 > 0).collect();
             used[index] |= !all.is_empty();
-            for (i, &(pipeline, label, slot, workgroups)) in all.iter().enumerate() {
+            for (i, &(pass, slot, workgroups)) in all.iter().enumerate() {
                 let writes = timer.and_then(|t| t.writes(index, i == 0, i + 1 == all.len()));
-                passes_gpu.encode_timed(
-                    encoder,
-                    label,
-                    pipeline,
-                    &self.bind_group,
-                    slot,
-                    workgroups,
-                    writes,
-                );
+                let groups = &self.bind_groups;
+                passes_gpu.encode_timed(encoder, pass, groups, slot, workgroups, writes);
             }
             if split && !all.is_empty() {
                 let full = std::mem::replace(encoder, Self::encoder(engine, "irradiance frame"));
@@ -1338,44 +1326,29 @@ impl Irradiance {
             PHASE_RENDER,
             &mut render_dispatches
                 .iter()
-                .map(|&(slot, count)| (&passes_gpu.render, "irradiance render", slot, count)),
+                .map(|&(slot, count)| (Pass::Render, slot, count)),
         )?;
         let pending = if cache_on { self.pending } else { 0 };
         phase(
             &mut encoder,
             PHASE_CREATE,
-            &mut (0..create_rounds).map(|r| {
-                (
-                    &passes_gpu.create,
-                    "irradiance create",
-                    create_first + r,
-                    pending,
-                )
-            }),
+            &mut (0..create_rounds).map(|r| (Pass::Create, create_first + r, pending)),
         )?;
         let update_groups = self.layout.block_count.div_ceil(UPDATE_WORKGROUP);
         phase(
             &mut encoder,
             PHASE_UPDATE,
-            &mut (0..if cache_on { update_rounds } else { 0 }).map(|r| {
-                (
-                    &passes_gpu.update,
-                    "irradiance update",
-                    update_first + r,
-                    update_groups,
-                )
-            }),
+            &mut (0..if cache_on { update_rounds } else { 0 })
+                .map(|r| (Pass::Update, update_first + r, update_groups)),
         )?;
-        let requests =
-            (cache_on && cache_work).then_some((&passes_gpu.requests, "irradiance requests", 0, 1));
+        let requests = (cache_on && cache_work).then_some((Pass::Requests, 0, 1));
         let priority_passes: Vec<_> = if self.config.priorities {
             (0..n)
                 .step_by(MAX_WORKGROUPS)
                 .enumerate()
                 .map(|(i, first)| {
                     (
-                        &passes_gpu.priority,
-                        "irradiance priority",
+                        Pass::Priority,
                         priority_first + i as u32,
                         (n - first).min(MAX_WORKGROUPS) as u32,
                     )
@@ -1753,13 +1726,13 @@ fn pixel_buffers(engine: &Engine, width: u32, height: u32, layout: &Layout) -> P
     }
 }
 
-fn bind_group(
+fn bind_groups(
     engine: &Engine,
     base: &Progressive,
     cache: &CacheBuffers,
     pixels: &PixelBuffers,
-) -> wgpu::BindGroup {
-    engine.irradiance.bind_group(
+) -> IrradianceBindGroups {
+    engine.irradiance.bind_groups(
         &engine.gpu,
         &IrradianceBindings {
             estimator: base.bindings(),
@@ -1818,7 +1791,7 @@ impl Technique for Irradiance {
                 };
                 self.pixels = pixel_buffers(engine, width, height, &self.layout);
                 self.readback = readback_buffer(engine, &self.layout);
-                self.bind_group = bind_group(engine, &self.base, &self.cache, &self.pixels);
+                self.bind_groups = bind_groups(engine, &self.base, &self.cache, &self.pixels);
                 self.reset_words(engine);
                 self.cursor = 0;
                 self.block_cost = None;

@@ -1,13 +1,12 @@
 //! The three passes of technique `manylight` (shaders/manylight/*.wgsl): virtual lights,
-//! their adaptive volumetric shadow maps, and gathering. All three bind the estimator's
-//! bindings 0–5 (crate::passes::estimator) plus the technique's parameters, virtual lights and
-//! shadow maps (6–8), the gather's chunk (9, dynamic offset) and the tracing batch's scratch
-//! lights (10), through one bind group layout.
+//! their adaptive volumetric shadow maps, and gathering. One bind group layout (`BINDINGS`)
+//! serves all three: the estimator's bindings 0–5 (crate::passes::estimator) and the
+//! technique's (6–13); each pass's WGSL declares the ones it reads.
 
 use bytemuck::{Pod, Zeroable};
 
 use crate::Gpu;
-use crate::passes::{layout_pipeline, storage_entry, uniform_entry, volume_entry};
+use crate::passes::builder::{Binding, Layout};
 
 /// Matches `ManylightParams` in manylight/common.wgsl.
 #[repr(C)]
@@ -110,8 +109,20 @@ pub fn avsm_bytes(vls: u32, face_res: u32, nodes: u32) -> u64 {
     vls as u64 * 6 * face_res as u64 * face_res as u64 * nodes as u64 * 4
 }
 
+/// What bindings 0–13 hold: the estimator's (0–5), then the parameters, virtual lights and
+/// shadow maps (6–8), the gather's chunk (9), the tracing batch's scratch lights (10), the
+/// macrocells' data bins (11), the work list (12) and the maps' historygrams (13).
+pub const BINDINGS: [Binding; 14] = {
+    use Binding::*;
+    let chunk = Dynamic(size_of::<GatherChunk>() as u64);
+    [
+        Uniform, Volume, Read, Uniform, ReadWrite, Read, Uniform, ReadWrite, ReadWrite, chunk,
+        ReadWrite, Read, Read, ReadWrite,
+    ]
+};
+
 pub struct ManylightPasses {
-    pub layout: wgpu::BindGroupLayout,
+    pub layout: Layout,
     pub vls: wgpu::ComputePipeline,
     pub avsm: wgpu::ComputePipeline,
     pub gather: wgpu::ComputePipeline,
@@ -119,42 +130,8 @@ pub struct ManylightPasses {
 
 impl ManylightPasses {
     pub fn new(gpu: &Gpu) -> Self {
-        let device = &gpu.device;
-        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("manylight"),
-            entries: &[
-                uniform_entry(0),
-                volume_entry(1),
-                storage_entry(2, true),
-                uniform_entry(3),
-                storage_entry(4, false),
-                storage_entry(5, true),
-                uniform_entry(6),
-                storage_entry(7, false),
-                storage_entry(8, false),
-                wgpu::BindGroupLayoutEntry {
-                    binding: 9,
-                    visibility: wgpu::ShaderStages::COMPUTE,
-                    ty: wgpu::BindingType::Buffer {
-                        ty: wgpu::BufferBindingType::Uniform,
-                        has_dynamic_offset: true,
-                        min_binding_size: wgpu::BufferSize::new(size_of::<GatherChunk>() as u64),
-                    },
-                    count: None,
-                },
-                storage_entry(10, false),
-                storage_entry(11, true),
-                storage_entry(12, true),
-                storage_entry(13, false),
-            ],
-        });
-        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("manylight"),
-            bind_group_layouts: &[Some(&layout)],
-            immediate_size: 0,
-        });
-        let pipeline =
-            |label: &str, source: String| layout_pipeline(gpu, label, &source, &pipeline_layout);
+        let layout = Layout::new(gpu, "manylight", &BINDINGS);
+        let pipeline = |label: &str, source: String| layout.pipeline(gpu, label, &source);
         Self {
             vls: pipeline("manylight vls", crate::shaders::manylight_vls()),
             avsm: pipeline("manylight avsm", crate::shaders::manylight_avsm()),

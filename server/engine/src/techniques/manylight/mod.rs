@@ -1030,46 +1030,22 @@ impl Manylight {
 }
 
 fn bind_group(engine: &Engine, base: &Progressive, buffers: &Buffers) -> wgpu::BindGroup {
-    let b = base.bindings();
-    fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
-        wgpu::BindGroupEntry {
-            binding,
-            resource: buffer.as_entire_binding(),
-        }
-    }
+    use crate::passes::builder::{buffer, record};
+    let technique = [
+        buffer(6, &buffers.params),
+        buffer(7, &buffers.vls),
+        buffer(8, &buffers.avsm),
+        record(9, &buffers.chunks, size_of::<GatherChunk>() as u64),
+        buffer(10, &buffers.scratch),
+        buffer(11, &buffers.cell_bins),
+        buffer(12, &buffers.work_list),
+        buffer(13, &buffers.avsm_hist),
+    ];
+    let entries = [base.bindings().entries().as_slice(), &technique].concat();
     engine
-        .gpu
-        .device
-        .create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("manylight"),
-            layout: &engine.manylight.layout,
-            entries: &[
-                entry(0, b.scene),
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: wgpu::BindingResource::TextureView(b.volume),
-                },
-                entry(2, b.tf_lut),
-                entry(3, b.lights),
-                entry(4, b.accum),
-                entry(5, b.cell_max_opacity),
-                entry(6, &buffers.params),
-                entry(7, &buffers.vls),
-                entry(8, &buffers.avsm),
-                wgpu::BindGroupEntry {
-                    binding: 9,
-                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                        buffer: &buffers.chunks,
-                        offset: 0,
-                        size: wgpu::BufferSize::new(size_of::<GatherChunk>() as u64),
-                    }),
-                },
-                entry(10, &buffers.scratch),
-                entry(11, &buffers.cell_bins),
-                entry(12, &buffers.work_list),
-                entry(13, &buffers.avsm_hist),
-            ],
-        })
+        .manylight
+        .layout
+        .bind_group(&engine.gpu, "manylight", &entries)
 }
 
 /// Whether light paths are tracked against the fixed majorant `density_scale`: it makes their

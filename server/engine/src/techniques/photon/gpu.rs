@@ -3,13 +3,13 @@
 //! (`photon/grid.wgsl`: clear, count, scan, scatter; of the records or of an update's changes),
 //! gathering + compositing (`photon/gather.wgsl`: mark, gather in rounds, composite) and the
 //! delta scatter of an update's changes (`photon/scatter.wgsl`: touch, weights, changes,
-//! apply, fallback). All share one binding layout
-//! (declared once in `photon/common.wgsl`) and the `#[repr(C)]` records below.
+//! apply, fallback). All share one binding layout (`BINDINGS`, declared once in
+//! `photon/common.wgsl`) and the `#[repr(C)]` records below.
 
 use bytemuck::{Pod, Zeroable};
 
 use crate::Gpu;
-use crate::passes::{storage_entry, uniform_entry, volume_entry};
+use crate::passes::builder::{Binding, Layout, buffer, dispatch, module, texture};
 
 /// Matches `PhotonUniforms` in photon/common.wgsl.
 #[repr(C)]
@@ -174,8 +174,18 @@ pub const SPATIAL_CELLS: u32 = 2;
 /// Workgroup width of the 1D photon kernels.
 pub const WORKGROUP: u32 = 64;
 
+/// What bindings 0–16 hold (every pass of shaders/photon/ declares them all, in common.wgsl):
+/// scene, volume, TF, `PhotonUniforms`, the emitters, then the technique's buffers.
+pub const BINDINGS: [Binding; 17] = {
+    use Binding::*;
+    [
+        Uniform, Volume, Read, Uniform, Read, ReadWrite, ReadWrite, ReadWrite, ReadWrite,
+        ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite,
+    ]
+};
+
 pub struct PhotonPass {
-    pub layout: wgpu::BindGroupLayout,
+    pub layout: Layout,
     pub trace_mark: wgpu::ComputePipeline,
     pub trace: wgpu::ComputePipeline,
     pub grid_clear: wgpu::ComputePipeline,
@@ -215,53 +225,13 @@ pub struct PhotonBindings<'a> {
 
 impl PhotonPass {
     pub fn new(gpu: &Gpu) -> Self {
-        let device = &gpu.device;
-        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("photon"),
-            entries: &[
-                uniform_entry(0),
-                volume_entry(1),
-                storage_entry(2, true),
-                uniform_entry(3),
-                storage_entry(4, true),
-                storage_entry(5, false),
-                storage_entry(6, false),
-                storage_entry(7, false),
-                storage_entry(8, false),
-                storage_entry(9, false),
-                storage_entry(10, false),
-                storage_entry(11, false),
-                storage_entry(12, false),
-                storage_entry(13, false),
-                storage_entry(14, false),
-                storage_entry(15, false),
-                storage_entry(16, false),
-            ],
-        });
-        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("photon"),
-            bind_group_layouts: &[Some(&layout)],
-            immediate_size: 0,
-        });
-        let module = |label: &str, source: String| {
-            device.create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some(label),
-                source: wgpu::ShaderSource::Wgsl(source.into()),
-            })
-        };
-        let trace = module("photon trace", crate::shaders::photon_trace());
-        let grid = module("photon grid", crate::shaders::photon_grid());
-        let gather = module("photon gather", crate::shaders::photon_gather());
-        let scatter = module("photon scatter", crate::shaders::photon_scatter());
+        let layout = Layout::new(gpu, "photon", &BINDINGS);
+        let trace = module(gpu, "photon trace", &crate::shaders::photon_trace());
+        let grid = module(gpu, "photon grid", &crate::shaders::photon_grid());
+        let gather = module(gpu, "photon gather", &crate::shaders::photon_gather());
+        let scatter = module(gpu, "photon scatter", &crate::shaders::photon_scatter());
         let pipeline = |label: &str, module: &wgpu::ShaderModule, entry: &str| {
-            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(label),
-                layout: Some(&pipeline_layout),
-                module,
-                entry_point: Some(entry),
-                compilation_options: Default::default(),
-                cache: None,
-            })
+            layout.entry_pipeline(gpu, label, module, entry)
         };
         Self {
             trace_mark: pipeline("photon trace mark", &trace, "trace_mark"),
@@ -283,40 +253,26 @@ impl PhotonPass {
     }
 
     pub fn bind_group(&self, gpu: &Gpu, b: &PhotonBindings) -> wgpu::BindGroup {
-        let buffers = [
-            (0, b.scene),
-            (2, b.tf_lut),
-            (3, b.uniforms),
-            (4, b.emitters),
-            (5, b.records),
-            (6, b.paths),
-            (7, b.grid_cells),
-            (8, b.grid_sorted),
-            (9, b.segments),
-            (10, b.accum),
-            (11, b.counters),
-            (12, b.gather_list),
-            (13, b.gather_state),
-            (14, b.retrace_list),
-            (15, b.changes),
-            (16, b.scatter),
+        let entries = [
+            buffer(0, b.scene),
+            texture(1, b.volume),
+            buffer(2, b.tf_lut),
+            buffer(3, b.uniforms),
+            buffer(4, b.emitters),
+            buffer(5, b.records),
+            buffer(6, b.paths),
+            buffer(7, b.grid_cells),
+            buffer(8, b.grid_sorted),
+            buffer(9, b.segments),
+            buffer(10, b.accum),
+            buffer(11, b.counters),
+            buffer(12, b.gather_list),
+            buffer(13, b.gather_state),
+            buffer(14, b.retrace_list),
+            buffer(15, b.changes),
+            buffer(16, b.scatter),
         ];
-        let mut entries: Vec<wgpu::BindGroupEntry> = buffers
-            .iter()
-            .map(|&(binding, buffer)| wgpu::BindGroupEntry {
-                binding,
-                resource: buffer.as_entire_binding(),
-            })
-            .collect();
-        entries.push(wgpu::BindGroupEntry {
-            binding: 1,
-            resource: wgpu::BindingResource::TextureView(b.volume),
-        });
-        gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("photon"),
-            layout: &self.layout,
-            entries: &entries,
-        })
+        self.layout.bind_group(gpu, "photon", &entries)
     }
 }
 
@@ -335,14 +291,8 @@ pub fn dispatch_linear(
     bind_group: &wgpu::BindGroup,
     n: u32,
 ) {
-    let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-        label: Some(label),
-        timestamp_writes: None,
-    });
-    pass.set_pipeline(pipeline);
-    pass.set_bind_group(0, bind_group, &[]);
     let (x, y) = linear_groups(n);
-    pass.dispatch_workgroups(x, y, 1);
+    dispatch(encoder, label, pipeline, (bind_group, &[]), [x, y, 1], None);
 }
 
 /// One workgroup of `pipeline` (the grid scan).
@@ -352,11 +302,5 @@ pub fn dispatch_single(
     pipeline: &wgpu::ComputePipeline,
     bind_group: &wgpu::BindGroup,
 ) {
-    let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-        label: Some(label),
-        timestamp_writes: None,
-    });
-    pass.set_pipeline(pipeline);
-    pass.set_bind_group(0, bind_group, &[]);
-    pass.dispatch_workgroups(1, 1, 1);
+    dispatch(encoder, label, pipeline, (bind_group, &[]), [1, 1, 1], None);
 }
