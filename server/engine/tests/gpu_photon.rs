@@ -9,7 +9,7 @@ use std::time::Duration;
 
 use common::*;
 use voxlight_engine::techniques::photon::{
-    Invalidation, Photon, PhotonBudget, PhotonParams, PhotonState, WorkBound,
+    Invalidation, Photon, PhotonBudget, PhotonParams, PhotonState, UpdateReport, WorkBound,
 };
 use voxlight_engine::{Change, GpuVolume, Scene, Technique};
 use voxlight_protocol::{Camera, Light, TransferFunction};
@@ -17,6 +17,41 @@ use voxlight_protocol::{Camera, Light, TransferFunction};
 /// The Cornell materials' TF of these tests; `edit` changes one material.
 fn cornell_tf(edit: impl Fn(&str, &mut [f32; 3], &mut f32)) -> TransferFunction {
     cornell_materials_tf(0.02, edit)
+}
+
+/// A change to one material of the Cornell TF (`cornell_with`).
+#[derive(Debug, Clone, Copy)]
+enum Set {
+    Colour([f32; 3]),
+    Opacity(f32),
+    OpacityTimes(f32),
+}
+
+const SPHERE_RED: (&str, Set) = ("sphere", Set::Colour([0.9, 0.1, 0.1]));
+const SPHERE_GREEN: (&str, Set) = ("sphere", Set::Colour([0.1, 0.9, 0.1]));
+const TALL_BLOCK_HALF: (&str, Set) = ("tall block", Set::OpacityTimes(0.5));
+const TALL_BLOCK_GONE: (&str, Set) = ("tall block", Set::Opacity(0.0));
+
+/// The Cornell TF of these tests with `sets` applied to their materials, in order.
+fn cornell_with(sets: &[(&str, Set)]) -> TransferFunction {
+    cornell_tf(|name, colour, opacity| {
+        for &(material, set) in sets {
+            if material == name {
+                match set {
+                    Set::Colour(c) => *colour = c,
+                    Set::Opacity(o) => *opacity = o,
+                    Set::OpacityTimes(f) => *opacity *= f,
+                }
+            }
+        }
+    })
+}
+
+/// The Cornell phantom at `size`³, uploaded.
+fn cornell_volume(size: u32) -> Arc<GpuVolume> {
+    engine()
+        .upload_volume(&voxlight_volumes::phantom("cornell", size).expect("cornell"))
+        .expect("upload")
 }
 
 fn cornell_scene(size: u32, tf: TransferFunction) -> Scene {
@@ -73,6 +108,13 @@ fn converge(photon: &mut Photon, scene: &Scene) {
     }
 }
 
+/// A new photon map of `scene`, converged by `step`.
+fn converged(volume: &Arc<GpuVolume>, scene: &Scene, p: PhotonParams) -> Photon {
+    let mut photon = Photon::new(engine(), volume.clone(), scene, p).expect("photon");
+    converge(&mut photon, scene);
+    photon
+}
+
 fn full_recompute(volume: &Arc<GpuVolume>, scene: &Scene, p: PhotonParams) -> PhotonState {
     let engine = engine();
     let mut full = Photon::new(engine, volume.clone(), scene, p).expect("photon");
@@ -85,164 +127,116 @@ fn bytes<T: bytemuck::Pod>(x: &[T]) -> Vec<u8> {
     bytemuck::cast_slice::<T, u8>(x).to_vec()
 }
 
+/// Where the arrays named `what` first differ bit for bit, with both entries there (a length
+/// difference counts, at the shorter one's end); None when they are identical.
+fn differ<T: bytemuck::Pod + std::fmt::Debug>(what: &str, a: &[T], b: &[T]) -> Option<String> {
+    if bytes(a) == bytes(b) {
+        return None;
+    }
+    let n = a.len().min(b.len());
+    let i = (0..n)
+        .find(|&i| bytemuck::bytes_of(&a[i]) != bytemuck::bytes_of(&b[i]))
+        .unwrap_or(n);
+    let (x, y) = (a.get(i), b.get(i));
+    Some(format!("{what} differ first at {i}: {x:?} vs {y:?}"))
+}
+
 fn first_difference(a: &PhotonState, b: &PhotonState) -> Option<String> {
-    if bytes(&a.paths) != bytes(&b.paths) {
-        let i = a.paths.iter().zip(&b.paths).position(|(x, y)| x != y);
-        return Some(format!("paths differ first at {i:?}"));
+    differ("paths", &a.paths, &b.paths)
+        .or_else(|| differ("records", &a.records, &b.records))
+        .or_else(|| differ("grid cell starts", &a.grid_cells, &b.grid_cells))
+        .or_else(|| differ("grid orders", &a.grid_sorted, &b.grid_sorted))
+        .or_else(|| differ("segments", &a.segments, &b.segments))
+        .or_else(|| differ("images", &a.hdr, &b.hdr))
+}
+
+/// Fails with the first difference unless the states are bit-identical.
+fn assert_same(a: &PhotonState, b: &PhotonState, what: &str) {
+    if let Some(diff) = first_difference(a, b) {
+        panic!("{what}: {diff}");
     }
-    if bytes(&a.records) != bytes(&b.records) {
-        let i = (0..a.records.len())
-            .find(|&i| bytemuck::bytes_of(&a.records[i]) != bytemuck::bytes_of(&b.records[i]));
-        return Some(format!(
-            "records differ first at {i:?}: {:?} vs {:?}",
-            i.map(|i| a.records[i]),
-            i.map(|i| b.records[i])
-        ));
-    }
-    if a.grid_cells != b.grid_cells {
-        let i = a
-            .grid_cells
-            .iter()
-            .zip(&b.grid_cells)
-            .position(|(x, y)| x != y);
-        return Some(format!("grid cell starts differ first at {i:?}"));
-    }
-    if a.grid_sorted != b.grid_sorted {
-        let i = a
-            .grid_sorted
-            .iter()
-            .zip(&b.grid_sorted)
-            .position(|(x, y)| x != y);
-        return Some(format!("grid order differs first at {i:?}"));
-    }
-    if bytes(&a.segments) != bytes(&b.segments) {
-        let i = (0..a.segments.len())
-            .find(|&i| bytemuck::bytes_of(&a.segments[i]) != bytemuck::bytes_of(&b.segments[i]));
-        return Some(format!(
-            "segments differ first at {i:?}: {:?} vs {:?}",
-            i.map(|i| a.segments[i]),
-            i.map(|i| b.segments[i])
-        ));
-    }
-    if bytes(&a.hdr) != bytes(&b.hdr) {
-        return Some("images differ".into());
-    }
-    None
+}
+
+/// Fails unless `photon`'s state is bit for bit a full recompute's of `scene`.
+fn assert_equals_full(
+    photon: &Photon,
+    volume: &Arc<GpuVolume>,
+    scene: &Scene,
+    p: PhotonParams,
+    what: &str,
+) {
+    let state = photon.read_state(engine()).expect("read");
+    assert_same(
+        &state,
+        &full_recompute(volume, scene, p),
+        &format!("{what}: incremental != full"),
+    );
+}
+
+/// Edits `scene`'s TF to `tf` through `photon`'s update, checks the result against a full
+/// recompute bit for bit, and returns the update's report.
+fn edit_equals_full(
+    photon: &mut Photon,
+    volume: &Arc<GpuVolume>,
+    scene: &mut Scene,
+    tf: TransferFunction,
+    p: PhotonParams,
+    what: &str,
+) -> UpdateReport {
+    let change = Change::tf(&scene.tf, &tf);
+    scene.tf = tf;
+    photon.apply(engine(), scene, &change).expect("apply");
+    assert_equals_full(photon, volume, scene, p, what);
+    photon.last_update().expect("report")
 }
 
 #[test]
 fn incremental_tf_edits_equal_a_full_recompute_bit_for_bit() {
     let size = 40;
-    let volume = engine()
-        .upload_volume(&voxlight_volumes::phantom("cornell", 40).expect("cornell"))
-        .expect("upload");
+    let volume = cornell_volume(40);
+    // (name, new TF, local: must reuse part of the work)
+    let edit = |name, sets: &[(&str, Set)], local| (name, cornell_with(sets), local);
     let edits: Vec<(&str, TransferFunction, bool)> = vec![
-        // (name, new TF, local: must reuse part of the work)
-        (
-            "colour only: sphere red",
-            cornell_tf(|n, c, _| {
-                if n == "sphere" {
-                    *c = [0.9, 0.1, 0.1];
-                }
-            }),
-            true,
-        ),
-        (
-            // Paths recoloured at the sphere and retraced from the tall block on.
+        edit("colour only: sphere red", &[SPHERE_RED], true),
+        // Paths recoloured at the sphere and retraced from the tall block on.
+        edit(
             "mixed: sphere green, tall block half as opaque",
-            cornell_tf(|n, c, o| {
-                if n == "sphere" {
-                    *c = [0.1, 0.9, 0.1];
-                }
-                if n == "tall block" {
-                    *o *= 0.5;
-                }
-            }),
+            &[SPHERE_GREEN, TALL_BLOCK_HALF],
             true,
         ),
-        (
-            // A black albedo ends the paths there (they trace on no further)...
+        // A black albedo ends the paths there (they trace on no further)...
+        edit(
             "to black: sphere black",
-            cornell_tf(|n, c, _| {
-                if n == "sphere" {
-                    *c = [0.0; 3];
-                }
-            }),
+            &[("sphere", Set::Colour([0.0; 3]))],
             true,
         ),
-        (
-            // ...and a colour again lets them go on: traced from the sphere on.
-            "from black: sphere red again",
-            cornell_tf(|n, c, _| {
-                if n == "sphere" {
-                    *c = [0.9, 0.1, 0.1];
-                }
-            }),
-            true,
-        ),
-        (
+        // ...and a colour again lets them go on: traced from the sphere on.
+        edit("from black: sphere red again", &[SPHERE_RED], true),
+        edit(
             "opacity only: tall block removed",
-            cornell_tf(|n, c, o| {
-                if n == "sphere" {
-                    *c = [0.9, 0.1, 0.1];
-                }
-                if n == "tall block" {
-                    *o = 0.0;
-                }
-            }),
+            &[SPHERE_RED, TALL_BLOCK_GONE],
             true,
         ),
-        (
-            // Only opacity rises: the rejection query alone.
-            "opacity rise: tall block back",
-            cornell_tf(|n, c, _| {
-                if n == "sphere" {
-                    *c = [0.9, 0.1, 0.1];
-                }
-            }),
-            true,
-        ),
-        (
+        // Only opacity rises: the rejection query alone.
+        edit("opacity rise: tall block back", &[SPHERE_RED], true),
+        edit(
             "opacity fall: tall block removed again",
-            cornell_tf(|n, c, o| {
-                if n == "sphere" {
-                    *c = [0.9, 0.1, 0.1];
-                }
-                if n == "tall block" {
-                    *o = 0.0;
-                }
-            }),
+            &[SPHERE_RED, TALL_BLOCK_GONE],
             true,
         ),
-        (
-            // Most paths cross the thin medium without a collision in it.
+        // Most paths cross the thin medium without a collision in it.
+        edit(
             "colour only: thin medium recoloured",
-            cornell_tf(|n, c, o| {
-                if n == "sphere" {
-                    *c = [0.9, 0.1, 0.1];
-                }
-                if n == "tall block" {
-                    *o = 0.0;
-                }
-                if n == "medium" {
-                    *c = [0.5, 0.8, 0.9];
-                }
-            }),
+            &[
+                SPHERE_RED,
+                TALL_BLOCK_GONE,
+                ("medium", Set::Colour([0.5, 0.8, 0.9])),
+            ],
             true,
         ),
-        (
+        edit(
             "local: thicker medium",
-            cornell_tf(|n, c, o| {
-                if n == "sphere" {
-                    *c = [0.9, 0.1, 0.1];
-                }
-                if n == "tall block" {
-                    *o = 0.0;
-                }
-                if n == "medium" {
-                    *o = 0.05;
-                }
-            }),
+            &[SPHERE_RED, TALL_BLOCK_GONE, ("medium", Set::Opacity(0.05))],
             false,
         ),
         (
@@ -274,9 +268,8 @@ fn incremental_tf_edits_equal_a_full_recompute_bit_for_bit() {
         ("any photon", params(Invalidation::AnyPhoton)),
     ];
     for (spatial, p) in configurations {
-        let mut s = cornell_scene(size, cornell_tf(|_, _, _| {}));
-        let mut photon = Photon::new(engine(), volume.clone(), &s, p).expect("photon");
-        converge(&mut photon, &s);
+        let mut s = cornell_scene(size, cornell_with(&[]));
+        let mut photon = converged(&volume, &s, p);
         for (name, tf, local) in &edits {
             // The paths whose historygram meets the whole query: what the paper retraces.
             let query = voxlight_engine::tf::query_historygram(&s.tf, tf);
@@ -289,25 +282,12 @@ fn incremental_tf_edits_equal_a_full_recompute_bit_for_bit() {
                 .iter()
                 .filter(|p| (p.end_lo as u64 | (p.end_hi as u64) << 32) & widened != 0)
                 .count() as u64;
-            let change = Change::tf(&s.tf, tf);
-            s.tf = tf.clone();
-            photon.apply(engine(), &s, &change).expect("apply");
-            let report = photon.last_update().expect("report");
-            let incremental = photon.read_state(engine()).expect("read");
-            let full = full_recompute(&volume, &s, p);
-            if let Some(diff) = first_difference(&incremental, &full) {
-                panic!("{spatial}, edit `{name}`: incremental != full: {diff}");
-            }
+            let what = format!("{spatial}, edit `{name}`");
+            let report = edit_equals_full(&mut photon, &volume, &mut s, tf.clone(), p, &what);
             eprintln!(
-                "{spatial}, {name}: query {:064b}, retraced {:.1}% of {} paths ({} recoloured), {} records changed \
+                "{spatial}, {name}: query {query:064b}, retraced {:.1}% of {} paths ({} recoloured), {} records changed \
                  ({} change-list entries; {meeting_query} paths meet the query), segments {:.1}% ({} from \
                  the changes alone, {} by the scatter)",
-                match &change {
-                    Change::Tf {
-                        query_historygram, ..
-                    } => *query_historygram,
-                    _ => 0,
-                },
                 report.photons_retraced_pct(),
                 report.paths,
                 report.paths_recoloured,
@@ -364,14 +344,10 @@ fn incremental_tf_edits_equal_a_full_recompute_bit_for_bit() {
 
 #[test]
 fn camera_edit_keeps_photons_and_matches_a_full_recompute() {
-    let size = 32;
-    let volume = engine()
-        .upload_volume(&voxlight_volumes::phantom("cornell", 32).expect("cornell"))
-        .expect("upload");
+    let volume = cornell_volume(32);
     let p = params(Invalidation::DirtyCells);
-    let mut s = cornell_scene(size, cornell_tf(|_, _, _| {}));
-    let mut photon = Photon::new(engine(), volume.clone(), &s, p).expect("photon");
-    converge(&mut photon, &s);
+    let mut s = cornell_scene(32, cornell_with(&[]));
+    let mut photon = converged(&volume, &s, p);
     let traced = photon.stats().details.photons_traced;
     s.camera.eye = [0.3, 0.2, 2.5];
     photon.apply(engine(), &s, &Change::Camera).expect("apply");
@@ -384,8 +360,7 @@ fn camera_edit_keeps_photons_and_matches_a_full_recompute() {
         traced,
         "no photon traced again"
     );
-    let state = photon.read_state(engine()).expect("read");
-    assert!(first_difference(&state, &full_recompute(&volume, &s, p)).is_none());
+    assert_equals_full(&photon, &volume, &s, p, "camera edit");
 }
 
 #[test]
@@ -437,16 +412,17 @@ fn single_scattering_agrees_with_raymarch() {
     );
 }
 
+/// The 32³ sphere phantom and a 32² scene of it (default lights, opacity ramp) for
+/// `iterations`.
+fn sphere_scene(iterations: u32) -> (Arc<GpuVolume>, Scene) {
+    let (_, volume) = sphere(32);
+    let lights = voxlight_protocol::default_lights();
+    (volume, scene(ramp_tf(0.8), lights, 3.0, 32, iterations))
+}
+
 #[test]
 fn selectable_by_name_and_reports_stats() {
-    let (_, volume) = sphere(32);
-    let s = scene(
-        ramp_tf(0.8),
-        voxlight_protocol::default_lights(),
-        3.0,
-        32,
-        2,
-    );
+    let (volume, s) = sphere_scene(2);
     let (renderer, hdr) = render_with("photon", volume, &s);
     assert_eq!(renderer.technique_name(), "photon");
     assert!(
@@ -466,14 +442,7 @@ fn selectable_by_name_and_reports_stats() {
 
 #[test]
 fn oversized_photon_map_is_refused_before_allocation() {
-    let (_, volume) = sphere(32);
-    let s = scene(
-        ramp_tf(0.8),
-        voxlight_protocol::default_lights(),
-        3.0,
-        32,
-        64,
-    );
+    let (volume, s) = sphere_scene(64);
     let p = PhotonParams {
         photons_per_pass: 1 << 22,
         max_passes: 64,
@@ -493,10 +462,7 @@ fn oversized_photon_map_is_refused_before_allocation() {
 /// and incremental gathers off at different points and this failed.
 #[test]
 fn bench_sized_cornell_edit_is_bit_exact() {
-    let size = 96;
-    let volume = engine()
-        .upload_volume(&voxlight_volumes::phantom("cornell", 64).expect("cornell"))
-        .expect("upload");
+    let volume = cornell_volume(64);
     let p = PhotonParams {
         photons_per_pass: 16384,
         max_passes: 4,
@@ -504,7 +470,7 @@ fn bench_sized_cornell_edit_is_bit_exact() {
         segments: 8,
         ..PhotonParams::default()
     };
-    let mut s = cornell_scene(size, cornell_tf(|_, _, _| {}));
+    let mut s = cornell_scene(96, cornell_with(&[]));
     s.target_iterations = 4;
     s.params.density_scale = 60.0;
     s.lights = vec![
@@ -516,40 +482,26 @@ fn bench_sized_cornell_edit_is_bit_exact() {
             radiance: [0.08, 0.08, 0.09],
         },
     ];
-    let tf = cornell_tf(|n, c, _| {
-        if n == "sphere" {
-            *c = [0.2, 0.35, 0.9];
-        }
-    });
+    let tf = cornell_with(&[("sphere", Set::Colour([0.2, 0.35, 0.9]))]);
     let mut photon = Photon::new(engine(), volume.clone(), &s, p).expect("photon");
     photon.recompute(engine(), &s, 4).expect("recompute");
-    let again = full_recompute(&volume, &s, p);
-    assert!(
-        first_difference(&photon.read_state(engine()).unwrap(), &again).is_none(),
-        "full recompute is not reproducible: {:?}",
-        first_difference(&photon.read_state(engine()).unwrap(), &again)
+    assert_same(
+        &photon.read_state(engine()).unwrap(),
+        &full_recompute(&volume, &s, p),
+        "full recompute is not reproducible",
     );
-    let change = Change::tf(&s.tf, &tf);
-    s.tf = tf;
-    photon.apply(engine(), &s, &change).expect("apply");
-    let full = full_recompute(&volume, &s, p);
-    let inc = photon.read_state(engine()).unwrap();
-    assert!(
-        first_difference(&inc, &full).is_none(),
-        "{:?}",
-        first_difference(&inc, &full)
-    );
+    edit_equals_full(&mut photon, &volume, &mut s, tf, p, "bench-sized edit");
     // The device's own round budget cuts nothing short: a far smaller one (many more rounds,
     // far below any loop limit) gives the same bits.
     let small = PhotonParams {
         gather_budget: 1000,
         ..p
     };
-    let again = full_recompute(&volume, &s, small);
-    assert!(
-        first_difference(&again, &full).is_none(),
-        "{:?}",
-        first_difference(&again, &full)
+    let full = photon.read_state(engine()).unwrap();
+    assert_same(
+        &full_recompute(&volume, &s, small),
+        &full,
+        "gather budget 1000",
     );
 }
 
@@ -559,18 +511,14 @@ fn bench_sized_cornell_edit_is_bit_exact() {
 /// material moves the paths that collided in it.
 #[test]
 fn the_work_census_counts_a_full_recompute_without_changing_it() {
-    let size = 40;
-    let volume = engine()
-        .upload_volume(&voxlight_volumes::phantom("cornell", 40).expect("cornell"))
-        .expect("upload");
+    let volume = cornell_volume(40);
     let p = params(Invalidation::DirtyCells);
-    let mut s = cornell_scene(size, cornell_tf(|_, _, _| {}));
+    let mut s = cornell_scene(40, cornell_with(&[]));
     let mut photon = Photon::new(engine(), volume.clone(), &s, p).expect("photon");
     let old = photon.census(engine(), &s, p.max_passes).expect("census");
     let state = photon.read_state(engine()).expect("read");
-    if let Some(diff) = first_difference(&state, &full_recompute(&volume, &s, p)) {
-        panic!("a census is not a full recompute: {diff}");
-    }
+    let full = full_recompute(&volume, &s, p);
+    assert_same(&state, &full, "a census is not a full recompute");
     assert_eq!(old.records, state.records);
     for (i, r) in old.records.iter().enumerate() {
         if r.cell == u32::MAX {
@@ -585,21 +533,17 @@ fn the_work_census_counts_a_full_recompute_without_changing_it() {
     let total: u64 = old.terms.iter().map(|&t| t as u64).sum();
     assert!(total > 0, "the gather formed no term");
 
-    let recoloured = cornell_tf(|n, c, _| {
-        if n == "sphere" {
-            *c = [0.9, 0.1, 0.1];
-        }
-    });
-    let colour = photon
-        .census(
-            engine(),
-            &Scene {
-                tf: recoloured.clone(),
-                ..s.clone()
-            },
-            p.max_passes,
-        )
-        .expect("census");
+    let census_with = |photon: &mut Photon, tf: &TransferFunction| {
+        let scene = Scene {
+            tf: tf.clone(),
+            ..s.clone()
+        };
+        photon
+            .census(engine(), &scene, p.max_passes)
+            .expect("census")
+    };
+    let recoloured = cornell_with(&[SPHERE_RED]);
+    let colour = census_with(&mut photon, &recoloured);
     let bound = WorkBound::between(&old, &colour);
     assert!(bound.records_changed > 0, "the sphere holds no photon");
     assert_eq!(bound.records_power_only, bound.records_changed, "{bound:?}");
@@ -617,21 +561,8 @@ fn the_work_census_counts_a_full_recompute_without_changing_it() {
         "a colour edit changed the tracking"
     );
 
-    let removed = cornell_tf(|n, _, o| {
-        if n == "tall block" {
-            *o = 0.0;
-        }
-    });
-    let removal = photon
-        .census(
-            engine(),
-            &Scene {
-                tf: removed.clone(),
-                ..s.clone()
-            },
-            p.max_passes,
-        )
-        .expect("census");
+    let removed = cornell_with(&[TALL_BLOCK_GONE]);
+    let removal = census_with(&mut photon, &removed);
     let bound = WorkBound::between(&old, &removal);
     assert!(
         bound.paths_moved > 0 && bound.steps_resumed > 0,
@@ -648,45 +579,27 @@ fn the_work_census_counts_a_full_recompute_without_changing_it() {
     // equals a full recompute.
     // The map now holds the last census's TF.
     s.tf = removed;
-    let change = Change::tf(&s.tf, &recoloured);
-    s.tf = recoloured;
-    photon.apply(engine(), &s, &change).expect("apply");
-    let report = photon.last_update().expect("an update");
+    let what = "an update after a census";
+    let report = edit_equals_full(&mut photon, &volume, &mut s, recoloured, p, what);
     assert!(
         report.segments_scattered > 0,
         "the update did not use the scatter: {report:?}"
     );
-    if let Some(diff) = first_difference(
-        &photon.read_state(engine()).unwrap(),
-        &full_recompute(&volume, &s, p),
-    ) {
-        panic!("an update after a census != full: {diff}");
-    }
 }
 
 /// An update that changes more records than the change list holds gathers its photon-stale
 /// segments afresh: still bit for bit the full recompute.
 #[test]
 fn an_overflowing_change_list_still_equals_a_full_recompute() {
-    let volume = engine()
-        .upload_volume(&voxlight_volumes::phantom("cornell", 32).expect("cornell"))
-        .expect("upload");
+    let volume = cornell_volume(32);
     let p = PhotonParams {
         change_list: 64,
         ..params(Invalidation::DirtyCells)
     };
-    let mut s = cornell_scene(32, cornell_tf(|_, _, _| {}));
-    let mut photon = Photon::new(engine(), volume.clone(), &s, p).expect("photon");
-    converge(&mut photon, &s);
-    let tf = cornell_tf(|n, c, _| {
-        if n == "sphere" {
-            *c = [0.9, 0.1, 0.1];
-        }
-    });
-    let change = Change::tf(&s.tf, &tf);
-    s.tf = tf;
-    photon.apply(engine(), &s, &change).expect("apply");
-    let report = photon.last_update().expect("report");
+    let mut s = cornell_scene(32, cornell_with(&[]));
+    let mut photon = converged(&volume, &s, p);
+    let tf = cornell_with(&[SPHERE_RED]);
+    let report = edit_equals_full(&mut photon, &volume, &mut s, tf, p, "overflowing list");
     assert!(
         report.changes > 64,
         "{} changes fit the list",
@@ -694,11 +607,6 @@ fn an_overflowing_change_list_still_equals_a_full_recompute() {
     );
     assert!(report.segments_recomputed > 0);
     assert_eq!(report.segments_delta, 0, "an overflowing list was used");
-    let inc = photon.read_state(engine()).expect("read");
-    let full = full_recompute(&volume, &s, p);
-    if let Some(diff) = first_difference(&inc, &full) {
-        panic!("incremental != full: {diff}");
-    }
 }
 
 /// The delta scatter's two ways out are exact too: with room for fewer segments than an edit
@@ -706,15 +614,8 @@ fn an_overflowing_change_list_still_equals_a_full_recompute() {
 /// one invocation may visit (here a tiny loop budget), every delta segment is gathered instead.
 #[test]
 fn delta_scatter_capacity_and_overflow_still_equal_a_full_recompute() {
-    let volume = engine()
-        .upload_volume(&voxlight_volumes::phantom("cornell", 32).expect("cornell"))
-        .expect("upload");
-    let base = cornell_scene(40, cornell_tf(|_, _, _| {}));
-    let tf = cornell_tf(|n, c, _| {
-        if n == "sphere" {
-            *c = [0.9, 0.1, 0.1];
-        }
-    });
+    let volume = cornell_volume(32);
+    let base = cornell_scene(40, cornell_with(&[]));
     let defaults = params(Invalidation::DirtyCells);
     let segments = 40 * 40 * defaults.segments as u64;
     // The slot map (4 bytes per segment) and room for about a hundred segments (a slot is 22
@@ -730,12 +631,9 @@ fn delta_scatter_capacity_and_overflow_still_equal_a_full_recompute() {
     };
     for (name, p) in [("few slots", few_slots), ("overflow", overflowing)] {
         let mut s = base.clone();
-        let mut photon = Photon::new(engine(), volume.clone(), &s, p).expect("photon");
-        converge(&mut photon, &s);
-        let change = Change::tf(&s.tf, &tf);
-        s.tf = tf.clone();
-        photon.apply(engine(), &s, &change).expect("apply");
-        let report = photon.last_update().expect("report");
+        let mut photon = converged(&volume, &s, p);
+        let tf = cornell_with(&[SPHERE_RED]);
+        let report = edit_equals_full(&mut photon, &volume, &mut s, tf, p, name);
         eprintln!(
             "{name}: {} segments from the changes, {} by the scatter, {} changes",
             report.segments_delta, report.segments_scattered, report.changes
@@ -750,11 +648,6 @@ fn delta_scatter_capacity_and_overflow_still_equal_a_full_recompute() {
         } else {
             assert_eq!(report.segments_scattered, 0, "{name}: the scatter was used");
         }
-        let inc = photon.read_state(engine()).expect("read");
-        let full = full_recompute(&volume, &s, p);
-        if let Some(diff) = first_difference(&inc, &full) {
-            panic!("{name}: incremental != full: {diff}");
-        }
     }
 }
 
@@ -762,10 +655,8 @@ fn delta_scatter_capacity_and_overflow_still_equal_a_full_recompute() {
 /// larger than the device allows), the session is made without it instead of refused.
 #[test]
 fn a_delta_scatter_that_does_not_fit_is_left_out() {
-    let volume = engine()
-        .upload_volume(&voxlight_volumes::phantom("cornell", 32).expect("cornell"))
-        .expect("upload");
-    let s = cornell_scene(1024, cornell_tf(|_, _, _| {}));
+    let volume = cornell_volume(32);
+    let s = cornell_scene(1024, cornell_with(&[]));
     let p = PhotonParams {
         segments: 2,
         scatter_bytes: 1 << 40,
@@ -786,10 +677,8 @@ fn a_delta_scatter_that_does_not_fit_is_left_out() {
 /// forms the same fixed-point sums as one unbounded round: the states are bit-identical.
 #[test]
 fn gather_rounds_do_not_change_a_bit() {
-    let volume = engine()
-        .upload_volume(&voxlight_volumes::phantom("cornell", 32).expect("cornell"))
-        .expect("upload");
-    let s = cornell_scene(40, cornell_tf(|_, _, _| {}));
+    let volume = cornell_volume(32);
+    let s = cornell_scene(40, cornell_with(&[]));
     let one = PhotonParams {
         gather_budget: u32::MAX,
         ..params(Invalidation::DirtyCells)
@@ -811,11 +700,7 @@ fn gather_rounds_do_not_change_a_bit() {
         b.read_state(engine()).unwrap(),
     );
     assert!(a.hdr.iter().any(|p| p[0] > 0.0));
-    assert!(
-        first_difference(&a, &b).is_none(),
-        "{:?}",
-        first_difference(&a, &b)
-    );
+    assert_same(&a, &b, "budget 200 against one round");
 }
 
 /// Where the device cuts long shader loops short (lavapipe), a density scale whose photon
@@ -823,10 +708,8 @@ fn gather_rounds_do_not_change_a_bit() {
 /// elsewhere it is rendered.
 #[test]
 fn dense_media_are_refused_where_tracking_would_be_cut_short() {
-    let volume = engine()
-        .upload_volume(&voxlight_volumes::phantom("cornell", 32).expect("cornell"))
-        .expect("upload");
-    let mut s = cornell_scene(24, cornell_tf(|_, _, _| {}));
+    let volume = cornell_volume(32);
+    let mut s = cornell_scene(24, cornell_with(&[]));
     s.params.density_scale = 100_000.0;
     let p = params(Invalidation::DirtyCells);
     let mut photon = Photon::new(engine(), volume, &s, p).expect("photon");
@@ -849,11 +732,9 @@ fn dense_media_are_refused_where_tracking_would_be_cut_short() {
 #[test]
 fn gathers_in_parts_equal_a_full_recompute_bit_for_bit() {
     let engine = engine();
-    let volume = engine
-        .upload_volume(&voxlight_volumes::phantom("cornell", 32).expect("cornell"))
-        .expect("upload");
+    let volume = cornell_volume(32);
     let p = params(Invalidation::DirtyCells);
-    let s = cornell_scene(24, cornell_tf(|_, _, _| {}));
+    let s = cornell_scene(24, cornell_with(&[]));
     // 24² pixels × 6 segments, at most 3456 list slots: parts of 1000 take up to four steps.
     let mut photon = Photon::new(engine, volume.clone(), &s, p).expect("photon");
     photon.fix_gather_part(1000);
@@ -900,29 +781,23 @@ fn gathers_in_parts_equal_a_full_recompute_bit_for_bit() {
         .apply(engine, &turned_again, &Change::Camera)
         .expect("apply");
     converge(&mut photon, &turned_again);
-    let full = full_recompute(&volume, &turned_again, p);
-    let state = photon.read_state(engine).expect("read");
-    assert_eq!(first_difference(&state, &full), None);
+    assert_equals_full(&photon, &volume, &turned_again, p, "two camera edits");
 
     // A TF edit while a camera edit's gather is under way: the photons are updated and the
     // gather starts again with the new TF.
     photon.apply(engine, &s, &Change::Camera).expect("apply");
     photon.step(engine, &s, Duration::ZERO).expect("step");
     let mut edited = s.clone();
-    edited.tf = cornell_tf(|n, c, o| {
-        if n == "tall block" {
-            *c = [0.2, 0.7, 0.2];
-            *o *= 0.5;
-        }
-    });
+    edited.tf = cornell_with(&[
+        ("tall block", Set::Colour([0.2, 0.7, 0.2])),
+        TALL_BLOCK_HALF,
+    ]);
     let edit = Change::tf(&s.tf, &edited.tf);
     photon.apply(engine, &edited, &edit).expect("apply");
     let update = photon.last_update().expect("an update");
     assert!(update.paths_retraced > 0 && update.paths_retraced < update.paths);
     converge(&mut photon, &edited);
-    let full = full_recompute(&volume, &edited, p);
-    let state = photon.read_state(engine).expect("read");
-    assert_eq!(first_difference(&state, &full), None);
+    assert_equals_full(&photon, &volume, &edited, p, "a TF edit during a gather");
 
     // A TF edit with no gather under way: the incremental update, as before (finished at
     // once, no part left for `step`).
@@ -932,9 +807,13 @@ fn gathers_in_parts_equal_a_full_recompute_bit_for_bit() {
         .apply(engine, &back, &Change::tf(&edited.tf, &back.tf))
         .expect("apply");
     assert_eq!(photon.iteration(), p.max_passes);
-    let full = full_recompute(&volume, &back, p);
-    let state = photon.read_state(engine).expect("read");
-    assert_eq!(first_difference(&state, &full), None);
+    assert_equals_full(
+        &photon,
+        &volume,
+        &back,
+        p,
+        "a TF edit with no gather under way",
+    );
 }
 
 /// Issue 25's consistency machinery under updates: long paths with Russian roulette (up to 12
@@ -944,9 +823,7 @@ fn gathers_in_parts_equal_a_full_recompute_bit_for_bit() {
 /// gathered with its own pass's radius.
 #[test]
 fn roulette_and_shrinking_radii_keep_updates_bit_exact() {
-    let volume = engine()
-        .upload_volume(&voxlight_volumes::phantom("cornell", 32).expect("cornell"))
-        .expect("upload");
+    let volume = cornell_volume(32);
     let p = PhotonParams {
         photons_per_pass: 2048,
         max_passes: 4,
@@ -954,40 +831,17 @@ fn roulette_and_shrinking_radii_keep_updates_bit_exact() {
         ..params(Invalidation::DirtyCells)
     };
     assert!(p.roulette_survival < 1.0 && p.radius_alpha < 1.0);
-    let mut s = cornell_scene(32, cornell_tf(|_, _, _| {}));
+    let mut s = cornell_scene(32, cornell_with(&[]));
     s.target_iterations = 4;
-    let mut photon = Photon::new(engine(), volume.clone(), &s, p).expect("photon");
-    converge(&mut photon, &s);
+    let mut photon = converged(&volume, &s, p);
     let edits = [
-        cornell_tf(|n, c, _| {
-            if n == "sphere" {
-                *c = [0.9, 0.1, 0.1];
-            }
-        }),
-        cornell_tf(|n, c, o| {
-            if n == "sphere" {
-                *c = [0.1, 0.9, 0.1];
-            }
-            if n == "tall block" {
-                *o *= 0.5;
-            }
-        }),
-        cornell_tf(|n, c, _| {
-            if n == "sphere" {
-                *c = [0.1, 0.9, 0.1];
-            }
-        }),
+        cornell_with(&[SPHERE_RED]),
+        cornell_with(&[SPHERE_GREEN, TALL_BLOCK_HALF]),
+        cornell_with(&[SPHERE_GREEN]),
     ];
     for (i, tf) in edits.into_iter().enumerate() {
-        let change = Change::tf(&s.tf, &tf);
-        s.tf = tf;
-        photon.apply(engine(), &s, &change).expect("apply");
-        let inc = photon.read_state(engine()).expect("read");
-        let full = full_recompute(&volume, &s, p);
-        if let Some(diff) = first_difference(&inc, &full) {
-            panic!("edit {i}: incremental != full: {diff}");
-        }
-        let report = photon.last_update().expect("report");
+        let what = format!("edit {i}");
+        let report = edit_equals_full(&mut photon, &volume, &mut s, tf, p, &what);
         assert!(
             report.paths_retraced + report.paths_recoloured < report.paths,
             "edit {i} redid every path: {report:?}"

@@ -1,44 +1,26 @@
-//! Technique `photon`: volumetric photon mapping with historygrams (Jönsson et al. 2012).
+//! Technique `photon`: volumetric photon mapping with historygrams (Jönsson et al. 2012). Its
+//! steps, the incremental TF update and why that update equals a full recompute bit for bit are
+//! in docs/architecture.md, "`photon`".
 //!
-//! Each progressive pass traces `photons_per_pass` more photon paths (shaders/photon_trace.wgsl)
-//! into a buffer of `bounces` records per path, rebuilds the hash grid over every record
-//! (photon/grid.wgsl) and gathers every view-ray segment from all photons so far
-//! (photon/gather.wgsl), then composites the segments into the HDR output.
-//!
-//! Consistency (docs/validation.md, against Mitsuba 3): paths scatter up to `bounces` (16) times
-//! with Russian roulette from the second scattering on (a TF-independent survival probability,
-//! so that a colour edit stays a recolouring); the paper's cap of 2 left the blob scene 10% dark.
-//! Each pass's photons are gathered with that pass's radius, shrinking by the 3D form of
-//! Knaus & Zwicker's (i + α) / (i + 1) rule (`radius_alpha`), and the picture is the mean of
-//! the passes' estimates, so kernel blur falls with passes as noise does. The radius schedule
-//! depends on the pass index alone (a change-list entry carries its record's pass), so updates
-//! stay exact.
-//!
-//! A TF edit (`Change::Tf`) does not start over. Its query historygram is split by what it can
-//! change on a photon path: bins whose opacity rose, where a rejected tentative collision of
-//! delta tracking may become real (tested against the historygram of every point the path's
-//! tracking sampled), and bins whose colour changed or opacity fell, where only a real
-//! collision can change (tested against the bins of the path's collisions). Paths that meet
-//! either are retraced from their last unaffected interaction, and every record that changes
-//! goes to a change list (its old and new version, one entry where only the power changed).
-//! Segments whose own historygram meets the bins whose opacity changed are gathered again;
-//! segments that a changed photon can reach (dirty cells, the spatial historygram, or any
-//! change) subtract the old versions' terms and add the new ones. Because the random numbers of interaction k of path p depend only on (seed, p, k)
-//! and the gather sums fixed-point integers (whose sum does not depend on order), the result
-//! equals a full recompute bit for bit.
-//!
-//! A camera edit keeps the photons (they do not depend on the camera) and gathers again.
-//!
-//! - A progressive pass's gather (and a camera edit's) runs as parts over the list of
-//!   segments, one submission each of about `GATHER_PART_TIME` (`GatherInProgress`), so that
-//!   `step` returns between them and an edit waits for a part, not for the gather (~9 s at
-//!   512² on lavapipe). Segments are independent, so the parts give the same bits as one
-//!   dispatch. A camera or light edit drops a gather under way; a TF edit updates the
-//!   photons and then restarts a full gather under way with the new TF, and finishes any
-//!   other gather first (its update starts from the old TF's segments).
-//!
-//! `census` counts a full recompute's work per record (benchmarks): compared between two TFs
-//! it bounds what any bit-exact update between them can save.
+//! - A progressive pass traces `photons_per_pass` more paths (shaders/photon/trace.wgsl),
+//!   rebuilds the hash grid over every record (photon/grid.wgsl), gathers every view-ray
+//!   segment from all photons so far and composites (photon/gather.wgsl); each pass's photons
+//!   are gathered with that pass's shrinking radius (`pass_kernels`).
+//! - A TF edit (`update_tf`) retraces only the paths its split query historygram can change,
+//!   keeps the changed records in a change list, and regathers or updates from the changes
+//!   only the segments they reach (the delta gather, or the delta scatter of photon/scatter.wgsl).
+//! - A camera edit keeps the photons and gathers again.
+//! - What a gather does is planned by pure, tested steps (`GridPlan`, `touch_entries`,
+//!   `GatherInProgress::part`); `begin_gather` and `gather_part` only record the dispatches.
+//! - A gather runs in parts of about `GATHER_PART_TIME`, so that `step` returns between them
+//!   and an edit waits for a part, not for the gather (~9 s at 512² on lavapipe); segments are
+//!   independent, so the parts give one dispatch's bits. A camera or light edit drops a gather
+//!   under way; a TF edit updates the photons and restarts a full gather under way with the
+//!   new TF, and finishes any other gather first (its update starts from the old TF's segments).
+//! - A gather runs in rounds within the device's loop limit (`round_budget`); fixed-point sums
+//!   make the result independent of where a round ends.
+//! - `census` counts a full recompute's work per record (benchmarks): compared between two TFs
+//!   it bounds what any bit-exact update between them can save.
 
 pub mod census;
 mod config;
@@ -176,7 +158,7 @@ impl Default for PhotonParams {
 
 /// One gather round: which half of the segment list it reads, its iteration budget per
 /// segment, and how many invocations per segment (all but the first idle).
-#[derive(Debug, Clone, Copy, Default)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 struct Round {
     input: u32,
     budget: u32,
@@ -201,11 +183,231 @@ struct GatherInProgress {
     next: u32,
 }
 
+/// One part of a gather round (`GatherInProgress::part`): what `gather_part` dispatches.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct GatherPart {
+    round: Round,
+    /// List slots this part gathers (`slots × round.stride` invocations).
+    slots: u32,
+    /// The half of the segment list where this round leaves the segments it does not finish;
+    /// its counter is cleared before the round's first part (`clear_output`).
+    output: u32,
+    clear_output: bool,
+    /// Whether this part ends its round.
+    ends_round: bool,
+    /// The counter word holding the next round's list length, read after a part that ends a
+    /// bounded round (None: nothing to read; an unbounded round leaves no segment).
+    next_list: Option<usize>,
+}
+
+impl GatherInProgress {
+    fn new(mode: u32, query: Query, listed: u32) -> Self {
+        Self {
+            mode,
+            query,
+            input: 0,
+            rounds: 0,
+            listed,
+            next: 0,
+        }
+    }
+
+    /// The next part: at most `max_slots` (at least one) of this round's list slots, with
+    /// `lane_budget` loop iterations per lane (u32::MAX: unbounded, one round). The segments
+    /// left after a round are the heaviest: each further round gives them twice the budget on
+    /// half as many lanes per SIMD batch of `lanes`, down to one lane.
+    fn part(&self, lane_budget: u32, lanes: u32, max_slots: u32) -> GatherPart {
+        let lanes = lanes.clamp(1, 64);
+        let stride = if lane_budget < u32::MAX {
+            (1u32 << self.rounds.min(6)).min(lanes)
+        } else {
+            1
+        };
+        let budget = lane_budget.saturating_mul(stride);
+        let slots = (self.listed - self.next).min(max_slots.max(1));
+        let output = 1 - self.input;
+        let ends_round = self.next + slots >= self.listed;
+        GatherPart {
+            round: Round {
+                input: self.input,
+                budget,
+                stride,
+                first: self.next,
+            },
+            slots,
+            output,
+            clear_output: self.next == 0,
+            ends_round,
+            next_list: (ends_round && budget != u32::MAX).then_some(COUNTER_LIST + output as usize),
+        }
+    }
+
+    /// Moves on past `part`; `left` is the counter `part.next_list` names (0 when it names
+    /// none). The gather is done once `listed` is 0.
+    fn advance(&mut self, part: &GatherPart, left: u32) {
+        self.next += part.slots;
+        if part.ends_round {
+            self.rounds += 1;
+            self.next = 0;
+            self.listed = left;
+            self.input = part.output;
+        }
+    }
+}
+
+/// What `gather_mark` counted for an update (its counter words).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+struct Marked {
+    /// Segments listed to gather, afresh or from the changes (`COUNTER_SEGMENTS`).
+    segments: u32,
+    /// Of those, segments to update from the changed photons alone (`COUNTER_DELTA`).
+    delta: u32,
+    /// Of those, segments given a delta scatter slot (`COUNTER_SCATTER`; may pass its capacity).
+    scatter: u32,
+    /// Change-list entries the update wrote (`COUNTER_CHANGES`; may pass the list's length).
+    changes: u32,
+}
+
+impl Marked {
+    fn from_words(words: &[u32]) -> Self {
+        Self {
+            segments: words[COUNTER_SEGMENTS],
+            delta: words[COUNTER_DELTA],
+            scatter: words[COUNTER_SCATTER],
+            changes: words[COUNTER_CHANGES],
+        }
+    }
+}
+
+/// The delta scatter's dispatches (`Photon::scatter`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum ScatterPlan {
+    /// The changes far outnumber the slots' segments (the delta gather's cost follows the
+    /// segments, the scatter's the changes): `scatter_fallback` over the slots lists their
+    /// segments for the delta gather at once.
+    Fallback { slots: u32 },
+    /// `scatter_weights` over the slots, `scatter_changes` over the change-list entries, then
+    /// `scatter_apply` over the slots, or `scatter_fallback` where a change reached more
+    /// pixels than one invocation may visit (one blocking read).
+    Scatter { slots: u32, changes: u32 },
+}
+
+/// One grid build (`Photon::build_grid`): which grid, over how many items (records or
+/// change-list entries).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct GridBuild {
+    grid: u32,
+    items: u32,
+}
+
+/// What a gather does between `gather_mark` and its rounds (`begin_gather`): the delta
+/// scatter, and the grids its gather reads.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct GridPlan {
+    /// Some segments are gathered afresh: they read the records' grid.
+    records_grid: bool,
+    scatter: Option<ScatterPlan>,
+    /// Segments the delta gather takes from the change grid when the scatter keeps its slots.
+    from_changes: u32,
+    /// Every segment updated from the changes (all go to the delta gather when the scatter
+    /// gives its slots back).
+    delta: u32,
+    /// Items of the two grids: the records in the map, the change list's length.
+    records: u32,
+    change_entries: u32,
+}
+
+impl GridPlan {
+    /// A full gather: every segment afresh, from the records' grid.
+    fn full(records: u32) -> Self {
+        Self {
+            records_grid: true,
+            scatter: None,
+            from_changes: 0,
+            delta: 0,
+            records,
+            change_entries: 0,
+        }
+    }
+
+    /// An update's gather from `gather_mark`'s counts, with slots for `scatter_capacity`
+    /// segments and a change list of `change_entries`.
+    fn update(marked: Marked, scatter_capacity: u32, records: u32, change_entries: u32) -> Self {
+        let slots = marked.scatter.min(scatter_capacity);
+        let changes = marked.changes.min(change_entries);
+        let scatter = (slots > 0).then(|| {
+            if changes as u64 > SCATTER_CHANGES_PER_SEGMENT * slots as u64 {
+                ScatterPlan::Fallback { slots }
+            } else {
+                ScatterPlan::Scatter { slots, changes }
+            }
+        });
+        Self {
+            records_grid: marked.segments > marked.delta,
+            scatter,
+            from_changes: marked.delta.saturating_sub(slots),
+            delta: marked.delta,
+            records,
+            change_entries,
+        }
+    }
+
+    /// Segments the scatter updated; `gave_back`: it left its slots to the delta gather.
+    fn scattered(&self, gave_back: bool) -> u32 {
+        match self.scatter {
+            Some(ScatterPlan::Scatter { slots, .. }) if !gave_back => slots,
+            _ => 0,
+        }
+    }
+
+    /// The grids to build once the scatter has run, the records' first.
+    fn grids(&self, gave_back: bool) -> Vec<GridBuild> {
+        let from_changes = if gave_back {
+            self.delta
+        } else {
+            self.from_changes
+        };
+        let mut grids = Vec::new();
+        if self.records_grid {
+            grids.push(GridBuild {
+                grid: GRID_RECORDS,
+                items: self.records,
+            });
+        }
+        if from_changes > 0 {
+            grids.push(GridBuild {
+                grid: GRID_CHANGES,
+                items: self.change_entries,
+            });
+        }
+        grids
+    }
+}
+
+/// After an update's trace, the change-list entries `scatter_touch` marks segments from
+/// (None: `gather_mark` marches every segment through the dirty cells instead, cheaper where
+/// the changes are many for the segments).
+fn touch_entries(changes: u64, segments: u64, change_entries: u64) -> Option<u32> {
+    (changes * TOUCH_SEGMENTS_PER_CHANGE <= segments).then(|| changes.min(change_entries) as u32)
+}
+
 /// A part of a long gather takes about this long (one submission).
 const GATHER_PART_TIME: Duration = Duration::from_millis(40);
 
 /// List slots of a gather's first part, before the gather's rate is known.
 const FIRST_PART_SLOTS: u32 = 16384;
+
+/// List slots of `step`'s next gather part: `fixed` (tests), else as many as the last part's
+/// `rate` (slots per second) gathers in `GATHER_PART_TIME`, else `FIRST_PART_SLOTS`.
+fn part_slots(fixed: Option<u32>, rate: Option<f64>) -> u32 {
+    match (fixed, rate) {
+        (Some(slots), _) => slots,
+        (None, Some(rate)) => {
+            (rate * GATHER_PART_TIME.as_secs_f64()).clamp(1.0, u32::MAX as f64) as u32
+        }
+        (None, None) => FIRST_PART_SLOTS,
+    }
+}
 
 /// What one submission's uniforms select besides the edit: the mode, the paths a trace
 /// dispatch covers, the gather round and the grid the grid kernels build.
@@ -846,9 +1048,8 @@ impl Photon {
             .gpu
             .queue
             .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&uniforms));
-        let records = self.passes * self.params.photons_per_pass * self.params.bounces;
         let mut encoder = Self::encoder(engine, "photon grid");
-        self.build_grid(&mut encoder, &engine.photon, records);
+        self.build_grid(&mut encoder, &engine.photon, self.record_count());
         engine.gpu.queue.submit([encoder.finish()]);
     }
 
@@ -857,6 +1058,33 @@ impl Photon {
             .gpu
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) })
+    }
+
+    /// One dispatch of `pipeline` over `count` invocations, in its own submission.
+    fn submit_linear(
+        &self,
+        engine: &Engine,
+        label: &str,
+        pipeline: &wgpu::ComputePipeline,
+        count: u32,
+    ) {
+        let mut encoder = Self::encoder(engine, label);
+        dispatch_linear(&mut encoder, label, pipeline, &self.bind_group, count);
+        engine.gpu.queue.submit([encoder.finish()]);
+    }
+
+    /// Sets one counter word before the next submission.
+    fn write_counter(&self, engine: &Engine, word: usize, value: u32) {
+        let offset = word as u64 * 4;
+        engine
+            .gpu
+            .queue
+            .write_buffer(&self.counters, offset, bytemuck::bytes_of(&value));
+    }
+
+    /// Records in the map (`bounces` slots per path, filled or not).
+    fn record_count(&self) -> u32 {
+        self.passes * self.params.photons_per_pass * self.params.bounces
     }
 
     /// Traces paths [offset, offset + count) (MODE_FULL) or retraces the first `count` paths
@@ -880,40 +1108,20 @@ impl Photon {
             ..Dispatch::default()
         };
         self.write_uniforms(engine, scene, query, dispatch);
-        let mut encoder = Self::encoder(engine, "photon trace");
-        dispatch_linear(
-            &mut encoder,
-            "photon trace",
-            &engine.photon.trace,
-            &self.bind_group,
-            count,
-        );
-        engine.gpu.queue.submit([encoder.finish()]);
+        self.submit_linear(engine, "photon trace", &engine.photon.trace, count);
     }
 
-    /// Rebuilds the grid over every record (and, in MODE_UPDATE, the grid over the changes),
-    /// gathers segments (all in MODE_FULL, stale ones in MODE_UPDATE; `gather_mark` lists
-    /// them so that the gather's SIMD lanes all work) in rounds within the device's loop
-    /// limit, and composites. Does not wait.
-    fn grid_and_gather(
-        &mut self,
-        engine: &Engine,
-        scene: &Scene,
-        mode: u32,
-        query: Query,
-    ) -> Result<(), EngineError> {
-        self.begin_gather(engine, scene, mode, query)?;
-        self.finish_gather(engine, scene)
-    }
-
-    /// Carries a gather under way to its end (composite included), at once.
+    /// Carries a gather under way to its end (composite included), at once. Does not wait.
     fn finish_gather(&mut self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
         while !self.gather_part(engine, scene, u32::MAX)? {}
         Ok(())
     }
 
-    /// The first half of `grid_and_gather`: marks and lists the segments to gather and builds
-    /// the grids (a gather under way is dropped); `gather_part` then gathers them.
+    /// Starts a gather (a gather under way is dropped): `gather_mark` lists the segments to
+    /// gather (all in MODE_FULL, stale ones in MODE_UPDATE, so that the gather's SIMD lanes
+    /// all work), then, as `GridPlan` says, an update's delta scatter runs and the grids are
+    /// rebuilt (over every record, and in MODE_UPDATE over the changes). `gather_part` then
+    /// gathers the listed segments in rounds within the device's loop limit, and composites.
     fn begin_gather(
         &mut self,
         engine: &Engine,
@@ -922,13 +1130,7 @@ impl Photon {
         query: Query,
     ) -> Result<(), EngineError> {
         self.gathering = None;
-        let pass = &engine.photon;
-        let bg = &self.bind_group;
-        let records = self.passes * self.params.photons_per_pass * self.params.bounces;
-        let pixels = self.width * self.height;
-        let segments = pixels * self.params.segments;
-        let mut grids = Vec::new();
-        let mut encoder = Self::encoder(engine, "photon gather mark");
+        let segments = self.width * self.height * self.params.segments;
         self.write_uniforms(
             engine,
             scene,
@@ -939,74 +1141,48 @@ impl Photon {
             },
         );
         // gather_mark lists afresh.
-        engine.gpu.queue.write_buffer(
-            &self.counters,
-            COUNTER_LIST as u64 * 4,
-            bytemuck::bytes_of(&0u32),
-        );
-        dispatch_linear(
-            &mut encoder,
+        self.write_counter(engine, COUNTER_LIST, 0);
+        self.submit_linear(
+            engine,
             "photon gather mark",
-            &pass.gather_mark,
-            bg,
+            &engine.photon.gather_mark,
             segments,
         );
-        engine.gpu.queue.submit([encoder.finish()]);
-        if mode == MODE_FULL {
-            grids.push(GRID_RECORDS);
+        let records = self.record_count();
+        let plan = if mode == MODE_FULL {
+            GridPlan::full(records)
         } else {
-            let words = self.counter_words(engine)?;
-            // A fresh gather reads the records' grid, a delta gather the changes'.
-            if words[COUNTER_SEGMENTS] > words[COUNTER_DELTA] {
-                grids.push(GRID_RECORDS);
-            }
-            let slots = words[COUNTER_SCATTER].min(self.budget.scatter_capacity as u32);
-            let mut gathered_from_changes = words[COUNTER_DELTA] - slots;
-            self.scattered = slots;
-            if slots > 0 {
-                let changes = words[COUNTER_CHANGES];
-                if self.scatter(engine, scene, query, slots, changes)? {
-                    gathered_from_changes = words[COUNTER_DELTA];
-                    self.scattered = 0;
-                }
-            }
-            if gathered_from_changes > 0 {
-                grids.push(GRID_CHANGES);
-            }
-        }
-        self.records_grid_behind.set(!grids.contains(&GRID_RECORDS));
-        for grid in grids {
-            let items = if grid == GRID_RECORDS {
-                records
-            } else {
-                self.budget.change_entries as u32
-            };
+            let marked = Marked::from_words(&self.counter_words(engine)?);
+            let capacity = self.budget.scatter_capacity as u32;
+            GridPlan::update(marked, capacity, records, self.budget.change_entries as u32)
+        };
+        let gave_back = match plan.scatter {
+            Some(scatter) => self.scatter(engine, scene, query, scatter)?,
+            None => false,
+        };
+        self.scattered = plan.scattered(gave_back);
+        self.records_grid_behind.set(!plan.records_grid);
+        for build in plan.grids(gave_back) {
             let dispatch = Dispatch {
                 mode,
-                grid_pass: grid,
+                grid_pass: build.grid,
                 ..Dispatch::default()
             };
             self.write_uniforms(engine, scene, query, dispatch);
             let mut encoder = Self::encoder(engine, "photon grid");
-            self.build_grid(&mut encoder, pass, items);
+            self.build_grid(&mut encoder, &engine.photon, build.items);
             engine.gpu.queue.submit([encoder.finish()]);
         }
         let listed = self.counter(engine, COUNTER_LIST)?;
-        self.gathering = Some(GatherInProgress {
-            mode,
-            query,
-            input: 0,
-            rounds: 0,
-            listed,
-            next: 0,
-        });
+        self.gathering = Some(GatherInProgress::new(mode, query, listed));
         Ok(())
     }
 
-    /// Gathers at most `max_slots` more segments of the gather under way (one submission; a
-    /// round's last part reads the next round's list, a blocking read, when the device's loop
-    /// limit made rounds), then, once no segment is left, composites. Returns whether the
-    /// gather is done (true also when none was under way). Does not wait otherwise.
+    /// Gathers at most `max_slots` more segments of the gather under way (one submission,
+    /// `GatherInProgress::part`; a round's last part reads the next round's list, a blocking
+    /// read, when the device's loop limit made rounds), then, once no segment is left,
+    /// composites. Returns whether the gather is done (true also when none was under way).
+    /// Does not wait otherwise.
     fn gather_part(
         &mut self,
         engine: &Engine,
@@ -1017,57 +1193,24 @@ impl Photon {
             return Ok(true);
         };
         if gathering.listed > 0 {
-            let lane_budget = self.round_budget(engine);
-            let lanes = engine.gpu.info.subgroup_max_size.clamp(1, 64);
-            let output = 1 - gathering.input;
-            // The segments left after a round are the heaviest: each further round gives them
-            // twice the budget on half as many lanes per SIMD batch, down to one lane.
-            let stride = if lane_budget < u32::MAX {
-                (1u32 << gathering.rounds.min(6)).min(lanes)
-            } else {
-                1
-            };
-            let budget = lane_budget.saturating_mul(stride);
-            let slots = (gathering.listed - gathering.next).min(max_slots.max(1));
-            let round = Round {
-                input: gathering.input,
-                budget,
-                stride,
-                first: gathering.next,
-            };
+            let lanes = engine.gpu.info.subgroup_max_size;
+            let part = gathering.part(self.round_budget(engine), lanes, max_slots);
             let dispatch = Dispatch {
                 mode: gathering.mode,
-                round,
+                round: part.round,
                 ..Dispatch::default()
             };
             self.write_uniforms(engine, scene, gathering.query, dispatch);
-            if gathering.next == 0 {
-                engine.gpu.queue.write_buffer(
-                    &self.counters,
-                    (COUNTER_LIST as u64 + output as u64) * 4,
-                    bytemuck::bytes_of(&0u32),
-                );
+            if part.clear_output {
+                self.write_counter(engine, COUNTER_LIST + part.output as usize, 0);
             }
-            let mut encoder = Self::encoder(engine, "photon gather");
-            dispatch_linear(
-                &mut encoder,
-                "photon gather",
-                &engine.photon.gather,
-                &self.bind_group,
-                slots * stride,
-            );
-            engine.gpu.queue.submit([encoder.finish()]);
-            gathering.next += slots;
-            if gathering.next >= gathering.listed {
-                gathering.rounds += 1;
-                gathering.next = 0;
-                gathering.listed = if budget == u32::MAX {
-                    0
-                } else {
-                    self.counter(engine, COUNTER_LIST + output as usize)?
-                };
-                gathering.input = output;
-            }
+            let invocations = part.slots * part.round.stride;
+            self.submit_linear(engine, "photon gather", &engine.photon.gather, invocations);
+            let left = match part.next_list {
+                Some(word) => self.counter(engine, word)?,
+                None => 0,
+            };
+            gathering.advance(&part, left);
             if gathering.listed > 0 {
                 self.gathering = Some(gathering);
                 return Ok(false);
@@ -1075,65 +1218,43 @@ impl Photon {
         }
         self.gather_rounds = gathering.rounds;
         let pixels = self.width * self.height;
-        let mut encoder = Self::encoder(engine, "photon composite");
-        dispatch_linear(
-            &mut encoder,
-            "photon composite",
-            &engine.photon.composite,
-            &self.bind_group,
-            pixels,
-        );
-        engine.gpu.queue.submit([encoder.finish()]);
+        self.submit_linear(engine, "photon composite", &engine.photon.composite, pixels);
         self.shown = self.passes;
         Ok(true)
     }
 
-    /// The delta scatter (photon/scatter.wgsl) over the `slots` segments gather_mark gave it and
-    /// the update's change list: the slots' sample weights, every change's terms, then either
-    /// the sums added to their segments or, where a change reached more pixels than one
+    /// The delta scatter (photon/scatter.wgsl) as `plan` says, over the slots gather_mark gave
+    /// it and the update's change list: the slots' sample weights, every change's terms, then
+    /// either the sums added to their segments or, where a change reached more pixels than one
     /// invocation may visit, every slot's segment listed for the delta gather instead (one
-    /// blocking read). Where the changes far outnumber the segments they reach, the delta gather
-    /// is cheaper (its cost follows the segments, the scatter's the changes) and is taken
-    /// directly. Returns whether the segments were left to the delta gather.
+    /// blocking read). Returns whether the segments were left to the delta gather.
     fn scatter(
         &self,
         engine: &Engine,
         scene: &Scene,
         query: Query,
-        slots: u32,
-        changes: u32,
+        plan: ScatterPlan,
     ) -> Result<bool, EngineError> {
         let pass = &engine.photon;
-        let bg = &self.bind_group;
-        let changes = changes.min(self.budget.change_entries as u32);
-        if changes as u64 > SCATTER_CHANGES_PER_SEGMENT * slots as u64 {
-            let mut encoder = Self::encoder(engine, "photon scatter fallback");
-            dispatch_linear(
-                &mut encoder,
-                "photon scatter fallback",
-                &pass.scatter_fallback,
-                bg,
-                slots,
-            );
-            engine.gpu.queue.submit([encoder.finish()]);
-            return Ok(true);
-        }
+        let (slots, changes) = match plan {
+            ScatterPlan::Fallback { slots } => {
+                self.submit_linear(
+                    engine,
+                    "photon scatter fallback",
+                    &pass.scatter_fallback,
+                    slots,
+                );
+                return Ok(true);
+            }
+            ScatterPlan::Scatter { slots, changes } => (slots, changes),
+        };
         self.write_scatter_uniforms(engine, scene, query);
+        let bg = &self.bind_group;
         let mut encoder = Self::encoder(engine, "photon scatter");
-        dispatch_linear(
-            &mut encoder,
-            "photon scatter weights",
-            &pass.scatter_weights,
-            bg,
-            slots,
-        );
-        dispatch_linear(
-            &mut encoder,
-            "photon scatter changes",
-            &pass.scatter_changes,
-            bg,
-            changes,
-        );
+        let weights = &pass.scatter_weights;
+        dispatch_linear(&mut encoder, "photon scatter weights", weights, bg, slots);
+        let terms = &pass.scatter_changes;
+        dispatch_linear(&mut encoder, "photon scatter changes", terms, bg, changes);
         engine.gpu.queue.submit([encoder.finish()]);
         let overflow = self.counter(engine, COUNTER_SCATTER_OVERFLOW)? > 0;
         let (label, pipeline) = if overflow {
@@ -1141,9 +1262,7 @@ impl Photon {
         } else {
             ("photon scatter apply", &pass.scatter_apply)
         };
-        let mut encoder = Self::encoder(engine, label);
-        dispatch_linear(&mut encoder, label, pipeline, bg, slots);
-        engine.gpu.queue.submit([encoder.finish()]);
+        self.submit_linear(engine, label, pipeline, slots);
         Ok(overflow)
     }
 
@@ -1151,20 +1270,9 @@ impl Photon {
     /// `entries` change-list entries), for gather_mark to take instead of the dirty cells.
     fn touch(&self, engine: &Engine, scene: &Scene, query: Query, entries: u32) {
         self.write_scatter_uniforms(engine, scene, query);
-        engine.gpu.queue.write_buffer(
-            &self.counters,
-            COUNTER_TOUCH as u64 * 4,
-            bytemuck::bytes_of(&1u32),
-        );
-        let mut encoder = Self::encoder(engine, "photon scatter touch");
-        dispatch_linear(
-            &mut encoder,
-            "photon scatter touch",
-            &engine.photon.scatter_touch,
-            &self.bind_group,
-            entries,
-        );
-        engine.gpu.queue.submit([encoder.finish()]);
+        self.write_counter(engine, COUNTER_TOUCH, 1);
+        let touch = &engine.photon.scatter_touch;
+        self.submit_linear(engine, "photon scatter touch", touch, entries);
     }
 
     /// The uniforms of the scatter passes: an update's, with the loop budget of one invocation
@@ -1207,15 +1315,8 @@ impl Photon {
             ..Dispatch::default()
         };
         self.write_uniforms(engine, scene, query, dispatch);
-        let mut encoder = Self::encoder(engine, "photon trace mark");
-        dispatch_linear(
-            &mut encoder,
-            "photon trace mark",
-            &engine.photon.trace_mark,
-            &self.bind_group,
-            paths,
-        );
-        engine.gpu.queue.submit([encoder.finish()]);
+        let mark = &engine.photon.trace_mark;
+        self.submit_linear(engine, "photon trace mark", mark, paths);
         self.counter(engine, COUNTER_RETRACED)
     }
 
@@ -1276,13 +1377,7 @@ impl Photon {
     /// Gathers the next part of the gather under way, sized to `GATHER_PART_TIME` by the last
     /// part's rate, and waits for it.
     fn gather_next_part(&mut self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
-        let slots = match (self.fixed_part, self.gather_rate) {
-            (Some(slots), _) => slots,
-            (None, Some(rate)) => {
-                (rate * GATHER_PART_TIME.as_secs_f64()).clamp(1.0, u32::MAX as f64) as u32
-            }
-            (None, None) => FIRST_PART_SLOTS,
-        };
+        let slots = part_slots(self.fixed_part, self.gather_rate);
         let before = self.gathering.map_or(0, |g| g.listed - g.next);
         let started = Instant::now();
         self.gather_part(engine, scene, slots)?;
@@ -1343,7 +1438,8 @@ impl Photon {
             trace = started.elapsed();
         }
         let started = Instant::now();
-        self.grid_and_gather(engine, scene, MODE_FULL, Query::default())?;
+        self.begin_gather(engine, scene, MODE_FULL, Query::default())?;
+        self.finish_gather(engine, scene)?;
         self.photons_traced += paths as u64;
         engine.gpu.wait_idle()?;
         let rest = if timed {
@@ -1476,16 +1572,12 @@ impl Photon {
         if self.params.invalidation == Invalidation::DirtyCells && self.budget.scatter_capacity > 0
         {
             let changes = self.counter(engine, COUNTER_CHANGES)? as u64;
-            if changes * TOUCH_SEGMENTS_PER_CHANGE <= segments {
-                self.touch(
-                    engine,
-                    scene,
-                    query,
-                    changes.min(self.budget.change_entries) as u32,
-                );
+            if let Some(entries) = touch_entries(changes, segments, self.budget.change_entries) {
+                self.touch(engine, scene, query, entries);
             }
         }
-        self.grid_and_gather(engine, scene, MODE_UPDATE, query)?;
+        self.begin_gather(engine, scene, MODE_UPDATE, query)?;
+        self.finish_gather(engine, scene)?;
         let words = self.counter_words(engine)?;
         let mask = |axis: usize| {
             words[COUNTER_SPATIAL + 2 * axis] as u64
@@ -1758,6 +1850,168 @@ impl Technique for Photon {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn marked(segments: u32, delta: u32, scatter: u32, changes: u32) -> Marked {
+        Marked {
+            segments,
+            delta,
+            scatter,
+            changes,
+        }
+    }
+
+    const RECORDS: GridBuild = GridBuild {
+        grid: GRID_RECORDS,
+        items: 900,
+    };
+    const CHANGES: GridBuild = GridBuild {
+        grid: GRID_CHANGES,
+        items: 50,
+    };
+
+    #[test]
+    fn a_full_gather_builds_the_records_grid_and_scatters_nothing() {
+        let plan = GridPlan::full(900);
+        assert_eq!(plan.scatter, None);
+        assert_eq!(plan.grids(false), vec![RECORDS]);
+        assert_eq!(plan.scattered(false), 0);
+    }
+
+    #[test]
+    fn an_update_scatters_into_its_slots_and_gathers_the_rest_from_the_change_grid() {
+        // 40 segments listed, 30 from the changes alone, 25 asking for a slot; 20 slots.
+        let plan = GridPlan::update(marked(40, 30, 25, 35), 20, 900, 50);
+        assert_eq!(
+            plan.scatter,
+            Some(ScatterPlan::Scatter {
+                slots: 20,
+                changes: 35
+            })
+        );
+        // 10 gathered afresh (records' grid), 10 past the slots from the change grid.
+        assert_eq!(plan.grids(false), vec![RECORDS, CHANGES]);
+        assert_eq!(plan.scattered(false), 20);
+        // A change that reached too many pixels gives every slot back to the delta gather.
+        assert_eq!(plan.grids(true), vec![RECORDS, CHANGES]);
+        assert_eq!(plan.scattered(true), 0);
+
+        // Every delta segment has a slot and none is gathered afresh: no grid at all, unless
+        // the scatter gives its slots back.
+        let plan = GridPlan::update(marked(30, 30, 30, 35), 64, 900, 50);
+        assert_eq!(plan.grids(false), vec![]);
+        assert_eq!(plan.scattered(false), 30);
+        assert_eq!(plan.grids(true), vec![CHANGES]);
+    }
+
+    #[test]
+    fn an_update_leaves_changes_that_far_outnumber_the_slots_to_the_delta_gather() {
+        // The change list holds 50 of the 400 changes written: 50 > 2 × 20 slots.
+        let plan = GridPlan::update(marked(20, 20, 20, 400), 64, 900, 50);
+        assert_eq!(plan.scatter, Some(ScatterPlan::Fallback { slots: 20 }));
+        // At twice the slots the scatter still pays (the list caps the changes it visits).
+        let plan = GridPlan::update(marked(25, 25, 25, 400), 64, 900, 50);
+        assert_eq!(
+            plan.scatter,
+            Some(ScatterPlan::Scatter {
+                slots: 25,
+                changes: 50
+            })
+        );
+        // No slots (the scatter off, or nothing asked for one): no scatter.
+        let plan = GridPlan::update(marked(20, 20, 20, 10), 0, 900, 50);
+        assert_eq!(plan.scatter, None);
+        assert_eq!(plan.grids(false), vec![CHANGES]);
+        // Nothing stale: no grid, nothing to gather.
+        let plan = GridPlan::update(Marked::default(), 64, 900, 50);
+        assert_eq!((plan.scatter, plan.grids(false)), (None, vec![]));
+    }
+
+    #[test]
+    fn touch_marks_from_the_changes_only_where_they_are_few_for_the_segments() {
+        assert_eq!(touch_entries(10, 160, 1000), Some(10));
+        assert_eq!(touch_entries(11, 160, 1000), None);
+        // At most the list's entries (an overflowing list holds no more).
+        assert_eq!(touch_entries(100, 1 << 20, 64), Some(64));
+    }
+
+    #[test]
+    fn an_unbounded_gather_is_one_round_in_parts() {
+        let mut gathering = GatherInProgress::new(MODE_FULL, Query::default(), 2500);
+        let mut parts = Vec::new();
+        while gathering.listed > 0 {
+            let part = gathering.part(u32::MAX, 32, 1000);
+            gathering.advance(&part, 0);
+            parts.push(part);
+        }
+        let slots: Vec<(u32, u32)> = parts.iter().map(|p| (p.round.first, p.slots)).collect();
+        assert_eq!(slots, vec![(0, 1000), (1000, 1000), (2000, 500)]);
+        assert!(parts.iter().all(|p| p.round.stride == 1
+            && p.round.budget == u32::MAX
+            && p.round.input == 0
+            && p.output == 1));
+        // The first part clears the list the round writes; the last ends it and reads nothing
+        // (an unbounded round leaves no segment).
+        assert_eq!(
+            parts.iter().map(|p| p.clear_output).collect::<Vec<_>>(),
+            vec![true, false, false]
+        );
+        assert_eq!(
+            parts.iter().map(|p| p.ends_round).collect::<Vec<_>>(),
+            vec![false, false, true]
+        );
+        assert!(parts.iter().all(|p| p.next_list.is_none()));
+        assert_eq!(gathering.rounds, 1);
+    }
+
+    #[test]
+    fn bounded_rounds_alternate_lists_and_give_the_rest_more_budget_on_fewer_lanes() {
+        let mut gathering = GatherInProgress::new(MODE_UPDATE, Query::default(), 100);
+        let mut rounds = Vec::new();
+        // Each round leaves half its segments, until one is left and it finishes.
+        while gathering.listed > 0 {
+            let part = gathering.part(200, 16, u32::MAX);
+            assert!(part.ends_round && part.clear_output && part.slots == gathering.listed);
+            assert_eq!(part.next_list, Some(COUNTER_LIST + part.output as usize));
+            assert_eq!(part.output, 1 - part.round.input);
+            gathering.advance(&part, part.slots / 2);
+            rounds.push((part.round.input, part.round.stride, part.round.budget));
+        }
+        assert_eq!(
+            rounds,
+            vec![
+                (0, 1, 200),
+                (1, 2, 400),
+                (0, 4, 800),
+                (1, 8, 1600),
+                (0, 16, 3200),
+                // At most the lanes of a SIMD batch.
+                (1, 16, 3200),
+                (0, 16, 3200),
+            ]
+        );
+        assert_eq!(gathering.rounds, 7);
+        // Lanes are taken as at least 1 and at most 64; the doubling stops at 64.
+        let mut late = GatherInProgress::new(MODE_FULL, Query::default(), 5);
+        late.rounds = 9;
+        assert_eq!(late.part(200, 0, 2).round.stride, 1);
+        assert_eq!(late.part(200, 128, 2).round.stride, 64);
+        assert_eq!(late.part(u32::MAX / 2, 128, 2).round.budget, u32::MAX);
+        assert_eq!(
+            late.part(200, 128, 0).slots,
+            1,
+            "at least one slot per part"
+        );
+    }
+
+    #[test]
+    fn gather_parts_follow_the_last_rate() {
+        assert_eq!(part_slots(Some(1000), Some(1.0)), 1000);
+        assert_eq!(part_slots(None, None), FIRST_PART_SLOTS);
+        // 40 ms at 100 000 slots per second.
+        assert_eq!(part_slots(None, Some(100_000.0)), 4000);
+        assert_eq!(part_slots(None, Some(0.0)), 1);
+        assert_eq!(part_slots(None, Some(f64::INFINITY)), u32::MAX);
+    }
 
     #[test]
     fn the_radius_schedule_shrinks_by_the_3d_knaus_zwicker_rule() {
