@@ -6,6 +6,7 @@ use std::time::{Duration, Instant};
 
 use serde_json::json;
 use voxlight_app::ServerConfig;
+use voxlight_app::loadgen::LoadConfig;
 use voxlight_protocol::{ClientMessage, ErrorCode, FrameFormat, ServerMessage};
 use voxlight_tests::{Client, DecodedFrame, Incoming, TestServer};
 
@@ -24,6 +25,24 @@ fn join(session: &str, name: &str) -> serde_json::Value {
     json!({"type": "hello", "protocol": 1, "session": session, "name": name})
 }
 
+/// `hello` asking for `technique`.
+fn hello_with_technique(size: u32, name: &str, technique: &str) -> serde_json::Value {
+    let mut hello = hello(size, name);
+    hello["technique"] = technique.into();
+    hello
+}
+
+/// Fails unless `reply` is an `error` of `code` whose text contains `says`.
+fn assert_error(reply: ServerMessage, code: ErrorCode, says: &str) {
+    match reply {
+        ServerMessage::Error { code: got, message } => {
+            assert_eq!(got, code, "{message}");
+            assert!(message.contains(says), "{message}");
+        }
+        other => panic!("expected {code:?}, got {other:?}"),
+    }
+}
+
 /// A TF visibly different from the sphere phantom's default.
 fn red_tf() -> serde_json::Value {
     json!({"type": "tf", "points": [
@@ -33,7 +52,6 @@ fn red_tf() -> serde_json::Value {
     ]})
 }
 
-/// Waits for the `edited` echo of an edit and returns its version.
 /// The next edit `by_name` made, as another viewer learns it, and the version it produced.
 async fn edit_by(client: &mut Client, by_name: &str) -> (ClientMessage, u64) {
     match client
@@ -46,6 +64,7 @@ async fn edit_by(client: &mut Client, by_name: &str) -> (ClientMessage, u64) {
     }
 }
 
+/// Waits for the `edited` echo of the next edit `by_name` made and returns its version.
 async fn edited_version(client: &mut Client, by_name: &str) -> u64 {
     edit_by(client, by_name).await.1
 }
@@ -293,23 +312,12 @@ async fn sessions_expire_after_the_grace_period() {
     }
     assert_eq!(server.metric("voxlight_sessions_active ").await, 0.0);
     let mut late = Client::connect(&server.ws_url()).await.unwrap();
-    match late.hello_with(join(&id, "late")).await.unwrap() {
-        ServerMessage::Error { code, message } => {
-            assert_eq!(code, ErrorCode::UnknownSession);
-            assert!(message.contains("grace period"), "{message}");
-        }
-        other => panic!("expected unknown_session, got {other:?}"),
-    }
+    let reply = late.hello_with(join(&id, "late")).await.unwrap();
+    assert_error(reply, ErrorCode::UnknownSession, "grace period");
     // A bad session id is the same error, and a new session still works.
     let mut fresh = Client::connect(&server.ws_url()).await.unwrap();
     let reply = fresh.hello_with(join("not-a-session", "x")).await.unwrap();
-    assert!(matches!(
-        reply,
-        ServerMessage::Error {
-            code: ErrorCode::UnknownSession,
-            ..
-        }
-    ));
+    assert_error(reply, ErrorCode::UnknownSession, "");
     let mut fresh = Client::connect(&server.ws_url()).await.unwrap();
     fresh.hello_with(hello(32, "fresh")).await.unwrap();
     fresh.frame_where(|_| true).await.unwrap();
@@ -334,34 +342,20 @@ async fn the_global_gpu_memory_budget_refuses_what_does_not_fit() {
     assert!(in_use > 0.0 && in_use <= budget as f64, "{in_use}");
 
     let mut big = Client::connect(&server.ws_url()).await.unwrap();
-    match big.hello_with(hello(512, "big")).await.unwrap() {
-        ServerMessage::Error { code, message } => {
-            assert_eq!(code, ErrorCode::GpuMemory);
-            assert!(message.contains("budget"), "{message}");
-        }
-        other => panic!("expected gpu_memory, got {other:?}"),
-    }
+    let reply = big.hello_with(hello(512, "big")).await.unwrap();
+    assert_error(reply, ErrorCode::GpuMemory, "budget");
     // A technique whose own buffers do not fit (manylight's shadow maps) is refused after it
     // is built, by its actual size.
     let mut shadowed = Client::connect(&server.ws_url()).await.unwrap();
-    let mut hello_manylight = hello(64, "shadowed");
-    hello_manylight["technique"] = "manylight".into();
-    match shadowed.hello_with(hello_manylight).await.unwrap() {
-        ServerMessage::Error { code, message } => {
-            assert_eq!(code, ErrorCode::GpuMemory);
-            assert!(message.contains("budget"), "{message}");
-        }
-        other => panic!("expected gpu_memory, got {other:?}"),
-    }
+    let hello_manylight = hello_with_technique(64, "shadowed", "manylight");
+    let reply = shadowed.hello_with(hello_manylight).await.unwrap();
+    assert_error(reply, ErrorCode::GpuMemory, "budget");
     // Growing the viewport past the budget is refused too, and the session goes on.
     small
         .send_json(json!({"type": "viewport", "width": 600, "height": 600}))
         .await
         .unwrap();
-    match small.recv_text().await.unwrap() {
-        ServerMessage::Error { code, .. } => assert_eq!(code, ErrorCode::GpuMemory),
-        other => panic!("expected gpu_memory, got {other:?}"),
-    }
+    assert_error(small.recv_text().await.unwrap(), ErrorCode::GpuMemory, "");
     small
         .send_json(json!({"type": "camera", "eye": [0.5, -2.3, 0.4], "target": [0, 0, 0], "up": [0, 0, 1], "fov_deg": 30}))
         .await
@@ -373,17 +367,17 @@ async fn the_global_gpu_memory_budget_refuses_what_does_not_fit() {
     server.stop().await.unwrap();
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn loadgen_measures_latency_and_frame_rates() {
-    let server = TestServer::start(None).await.unwrap();
-    let report = voxlight_app::loadgen::run(voxlight_app::loadgen::LoadConfig {
-        url: server.ws_url(),
-        sessions: 2,
-        viewers: 2,
-        duration: Duration::from_secs(4),
+/// A load of `n` sessions with `n` viewers each for `seconds` at size², 5 edits/s, a TF edit
+/// every second, no background session.
+fn load(url: String, n: u32, seconds: u64, size: u32) -> LoadConfig {
+    LoadConfig {
+        url,
+        sessions: n,
+        viewers: n,
+        duration: Duration::from_secs(seconds),
         viewport: voxlight_protocol::Viewport {
-            width: 48,
-            height: 48,
+            width: size,
+            height: size,
         },
         dataset: None,
         technique: None,
@@ -391,7 +385,16 @@ async fn loadgen_measures_latency_and_frame_rates() {
         token: None,
         edit_rate: 5.0,
         tf_interval: Duration::from_secs(1),
+        background_sessions: 0,
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn loadgen_measures_latency_and_frame_rates() {
+    let server = TestServer::start(None).await.unwrap();
+    let report = voxlight_app::loadgen::run(LoadConfig {
         background_sessions: 1,
+        ..load(server.ws_url(), 2, 4, 48)
     })
     .await
     .unwrap();
@@ -417,25 +420,9 @@ async fn loadgen_measures_latency_and_frame_rates() {
     })
     .await
     .unwrap();
-    let report = voxlight_app::loadgen::run(voxlight_app::loadgen::LoadConfig {
-        url: refusing.ws_url(),
-        sessions: 1,
-        viewers: 1,
-        duration: Duration::from_secs(1),
-        viewport: voxlight_protocol::Viewport {
-            width: 32,
-            height: 32,
-        },
-        dataset: None,
-        technique: None,
-        technique_options: None,
-        token: None,
-        edit_rate: 5.0,
-        tf_interval: Duration::from_secs(1),
-        background_sessions: 0,
-    })
-    .await
-    .unwrap();
+    let report = voxlight_app::loadgen::run(load(refusing.ws_url(), 1, 1, 32))
+        .await
+        .unwrap();
     assert_eq!(report.errors, 1, "{:?}", report.error_codes);
     refusing.stop().await.unwrap();
     server.stop().await.unwrap();
@@ -444,11 +431,7 @@ async fn loadgen_measures_latency_and_frame_rates() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn technique_details_reach_stats_and_frames() {
     let server = TestServer::start(None).await.unwrap();
-    let mut client = Client::connect(&server.ws_url()).await.unwrap();
-    let mut hello = hello(32, "Ada");
-    hello["technique"] = "manylight".into();
-    client.hello_with(hello).await.unwrap();
-    let frame = converged_after(&mut client, 2).await;
+    let (mut client, frame) = converged_session(&server, "manylight", 2).await;
     assert_eq!(frame.meta.technique, "manylight");
     let lights = frame.meta.details.virtual_lights.unwrap_or(0);
     assert!(lights > 0, "{:?}", frame.meta.details);
@@ -469,11 +452,7 @@ async fn technique_details_reach_stats_and_frames() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn irradiance_sessions_report_their_cache() {
     let server = TestServer::start(None).await.unwrap();
-    let mut client = Client::connect(&server.ws_url()).await.unwrap();
-    let mut hello = hello(32, "Ada");
-    hello["technique"] = "irradiance".into();
-    client.hello_with(hello).await.unwrap();
-    let frame = converged_after(&mut client, 24).await;
+    let (client, frame) = converged_session(&server, "irradiance", 24).await;
     assert_eq!(frame.meta.technique, "irradiance");
     let details = &frame.meta.details;
     assert_eq!(details.cache_active, Some(true), "{details:?}");
@@ -494,21 +473,14 @@ async fn technique_options_configure_the_session_and_reach_every_viewer() {
     let server = TestServer::start(None).await.unwrap();
     // Out-of-range options are refused before anything is built, naming the option.
     let mut refused = Client::connect(&server.ws_url()).await.unwrap();
-    let mut bad = hello(32, "Eve");
-    bad["technique"] = "manylight".into();
+    let mut bad = hello_with_technique(32, "Eve", "manylight");
     bad["technique_options"] = json!({"manylight": {"nodes": 40}});
-    match refused.hello_with(bad).await.unwrap() {
-        ServerMessage::Error { code, message } => {
-            assert_eq!(code, ErrorCode::BadValue);
-            assert!(message.contains("manylight.nodes"), "{message}");
-        }
-        other => panic!("expected an error, got {other:?}"),
-    }
+    let reply = refused.hello_with(bad).await.unwrap();
+    assert_error(reply, ErrorCode::BadValue, "manylight.nodes");
     refused.close().await;
 
     let mut ada = Client::connect(&server.ws_url()).await.unwrap();
-    let mut start = hello(32, "Ada");
-    start["technique"] = "manylight".into();
+    let mut start = hello_with_technique(32, "Ada", "manylight");
     start["technique_options"] = json!({"manylight": {"virtual_lights": 24, "face_res": 8}});
     let welcome = ada.hello_with(start).await.unwrap();
     let ServerMessage::Welcome { state, .. } = &welcome else {
@@ -589,6 +561,19 @@ async fn refused_options(client: &mut Client, options: serde_json::Value) -> (Er
         ServerMessage::Error { code, message } => (code, message),
         other => unreachable!("{other:?}"),
     }
+}
+
+/// A new 32² session of `technique`, converged after `iterations`: its viewer and that frame.
+async fn converged_session(
+    server: &TestServer,
+    technique: &str,
+    iterations: u32,
+) -> (Client, DecodedFrame) {
+    let mut client = Client::connect(&server.ws_url()).await.unwrap();
+    let hello = hello_with_technique(32, "Ada", technique);
+    client.hello_with(hello).await.unwrap();
+    let frame = converged_after(&mut client, iterations).await;
+    (client, frame)
 }
 
 /// Asks for `iterations` and waits for the converged frame.

@@ -6,7 +6,7 @@ use http_body_util::BodyExt;
 use serde_json::json;
 use tower::ServiceExt;
 use voxlight_protocol::{ErrorCode, FrameFormat, ServerMessage};
-use voxlight_tests::{Client, Incoming, TestServer, metric, shared_data};
+use voxlight_tests::{Client, DecodedFrame, Incoming, TestServer, metric, shared_data};
 
 fn assert_error(message: &ServerMessage, expected: ErrorCode) {
     match message {
@@ -16,6 +16,24 @@ fn assert_error(message: &ServerMessage, expected: ErrorCode) {
         }
         other => panic!("expected an {expected:?} error, got {other:?}"),
     }
+}
+
+/// A camera edit from `eye` toward the origin, z up, 30° field of view.
+fn camera(eye: [f64; 3]) -> serde_json::Value {
+    json!({"type": "camera", "eye": eye, "target": [0, 0, 0], "up": [0, 0, 1], "fov_deg": 30})
+}
+
+/// Sends `edit` and waits for a frame of scene version `version` or later.
+async fn edit_and_frame(
+    client: &mut Client,
+    edit: serde_json::Value,
+    version: u64,
+) -> DecodedFrame {
+    client.send_json(edit).await.unwrap();
+    client
+        .frame_where(|f| f.meta.scene_version >= version)
+        .await
+        .unwrap()
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -58,17 +76,11 @@ async fn hello_welcome_frames_tf_edit_and_garbage() {
         .frame_where(|f| f.meta.scene_version == 0)
         .await
         .unwrap();
-    client
-        .send_json(json!({"type": "tf", "points": [
-            {"value": 0.0, "color": [0.1, 0.2, 0.9], "opacity": 0.0},
-            {"value": 1.0, "color": [0.1, 0.2, 0.9], "opacity": 0.3}
-        ]}))
-        .await
-        .unwrap();
-    let edited = client
-        .frame_where(|f| f.meta.scene_version >= 1)
-        .await
-        .unwrap();
+    let tf = json!({"type": "tf", "points": [
+        {"value": 0.0, "color": [0.1, 0.2, 0.9], "opacity": 0.0},
+        {"value": 1.0, "color": [0.1, 0.2, 0.9], "opacity": 0.3}
+    ]});
+    let edited = edit_and_frame(&mut client, tf, 1).await;
     assert!(
         edited.max_diff(&reference) > 40,
         "TF edit did not change the picture"
@@ -77,51 +89,38 @@ async fn hello_welcome_frames_tf_edit_and_garbage() {
     // Garbage: an error reply each, then frames still come for the next edit.
     client.send_text("this is not json".into()).await.unwrap();
     assert_error(&client.recv_text().await.unwrap(), ErrorCode::BadMessage);
-    client
-        .send_json(json!({"type": "warp_drive"}))
-        .await
-        .unwrap();
-    assert_error(&client.recv_text().await.unwrap(), ErrorCode::BadMessage);
-    client
-        .send_json(json!({"type": "viewport", "width": 0, "height": 10}))
-        .await
-        .unwrap();
-    assert_error(&client.recv_text().await.unwrap(), ErrorCode::BadValue);
-    client
-        .send_json(
+    let answers = [
+        (json!({"type": "warp_drive"}), ErrorCode::BadMessage),
+        (
+            json!({"type": "viewport", "width": 0, "height": 10}),
+            ErrorCode::BadValue,
+        ),
+        (
             json!({"type": "tf", "points": [{"value": 2.0, "color": [1, 1, 1], "opacity": 1}]}),
-        )
-        .await
-        .unwrap();
-    assert_error(&client.recv_text().await.unwrap(), ErrorCode::BadValue);
+            ErrorCode::BadValue,
+        ),
+    ];
+    for (message, code) in answers {
+        refused(&mut client, message.to_string(), code).await;
+    }
     client.send_binary(vec![1, 2, 3]).await.unwrap();
     assert_error(&client.recv_text().await.unwrap(), ErrorCode::BadMessage);
-    client
-        .send_text("x".repeat(voxlight_protocol::MAX_MESSAGE_BYTES + 1))
-        .await
-        .unwrap();
-    assert_error(&client.recv_text().await.unwrap(), ErrorCode::TooLarge);
-    client
-        .send_json(json!({"type": "technique", "name": "nope"}))
-        .await
-        .unwrap();
-    assert_error(
-        &client.recv_text().await.unwrap(),
-        ErrorCode::UnknownTechnique,
-    );
-    client
-        .send_json(json!({"type": "dataset", "name": "nope"}))
-        .await
-        .unwrap();
-    assert_error(
-        &client.recv_text().await.unwrap(),
-        ErrorCode::UnknownDataset,
-    );
-    client
-        .send_json(json!({"type": "hello", "protocol": 1}))
-        .await
-        .unwrap();
-    assert_error(&client.recv_text().await.unwrap(), ErrorCode::NotReady);
+    let too_large = "x".repeat(voxlight_protocol::MAX_MESSAGE_BYTES + 1);
+    refused(&mut client, too_large, ErrorCode::TooLarge).await;
+    let answers = [
+        (
+            json!({"type": "technique", "name": "nope"}),
+            ErrorCode::UnknownTechnique,
+        ),
+        (
+            json!({"type": "dataset", "name": "nope"}),
+            ErrorCode::UnknownDataset,
+        ),
+        (json!({"type": "hello", "protocol": 1}), ErrorCode::NotReady),
+    ];
+    for (message, code) in answers {
+        refused(&mut client, message.to_string(), code).await;
+    }
     // A viewport the protocol allows but this GPU cannot hold is refused before allocation
     // (lavapipe binds at most 128 MiB per storage buffer: 8 Mi pixels of HDR accumulation).
     let max_pixels = server.state.max_viewport_pixels;
@@ -130,21 +129,13 @@ async fn hello_welcome_frames_tf_edit_and_garbage() {
         "a 1024² viewport must fit: {max_pixels}"
     );
     if 4096 * 4096 > max_pixels {
-        client
-            .send_json(json!({"type": "viewport", "width": 4096, "height": 4096}))
-            .await
-            .unwrap();
-        assert_error(&client.recv_text().await.unwrap(), ErrorCode::GpuMemory);
+        let huge = json!({"type": "viewport", "width": 4096, "height": 4096});
+        refused(&mut client, huge.to_string(), ErrorCode::GpuMemory).await;
     }
 
-    client
-        .send_json(json!({"type": "camera", "eye": [2.0, -1.0, 0.5], "target": [0, 0, 0], "up": [0, 0, 1], "fov_deg": 35}))
-        .await
-        .unwrap();
-    let after = client
-        .frame_where(|f| f.meta.scene_version >= 2)
-        .await
-        .unwrap();
+    let mut turn = camera([2.0, -1.0, 0.5]);
+    turn["fov_deg"] = 35.into();
+    let after = edit_and_frame(&mut client, turn, 2).await;
     assert_eq!((after.width, after.height), (96, 64));
     assert!(
         after.max_diff(&edited) > 20,
@@ -152,14 +143,8 @@ async fn hello_welcome_frames_tf_edit_and_garbage() {
     );
 
     // A new viewport: frames follow it.
-    client
-        .send_json(json!({"type": "viewport", "width": 64, "height": 80}))
-        .await
-        .unwrap();
-    let resized = client
-        .frame_where(|f| f.meta.scene_version >= 3)
-        .await
-        .unwrap();
+    let viewport = json!({"type": "viewport", "width": 64, "height": 80});
+    let resized = edit_and_frame(&mut client, viewport, 3).await;
     assert_eq!((resized.width, resized.height), (64, 80));
 
     client.close().await;
@@ -218,33 +203,28 @@ async fn converged_picture_arrives_as_lossless_png_with_stats() {
 async fn messages_before_hello_and_bad_hellos_get_errors() {
     let server = TestServer::start(None).await.unwrap();
     let mut client = Client::connect(&server.ws_url()).await.unwrap();
-    client.send_json(json!({"type": "camera", "eye": [0, 0, 2], "target": [0, 0, 0], "up": [0, 1, 0], "fov_deg": 30})).await.unwrap();
-    assert_error(&client.recv_text().await.unwrap(), ErrorCode::NotReady);
-    client.send_text("{".into()).await.unwrap();
-    assert_error(&client.recv_text().await.unwrap(), ErrorCode::BadMessage);
+    let early = json!({"type": "camera", "eye": [0, 0, 2], "target": [0, 0, 0], "up": [0, 1, 0], "fov_deg": 30});
+    refused(&mut client, early.to_string(), ErrorCode::NotReady).await;
+    refused(&mut client, "{".into(), ErrorCode::BadMessage).await;
     // Still usable: a proper hello works.
     client.hello(None, 32, 32).await.unwrap();
     client.frame_where(|_| true).await.unwrap();
     client.close().await;
 
-    let mut client = Client::connect(&server.ws_url()).await.unwrap();
-    client
-        .send_json(json!({"type": "hello", "protocol": 99}))
-        .await
-        .unwrap();
-    assert_error(
-        &client.recv_text().await.unwrap(),
-        ErrorCode::ProtocolVersion,
-    );
-    let mut client = Client::connect(&server.ws_url()).await.unwrap();
-    client
-        .send_json(json!({"type": "hello", "protocol": 1, "dataset": "../../etc/passwd"}))
-        .await
-        .unwrap();
-    assert_error(
-        &client.recv_text().await.unwrap(),
-        ErrorCode::UnknownDataset,
-    );
+    let bad_hellos = [
+        (
+            json!({"type": "hello", "protocol": 99}),
+            ErrorCode::ProtocolVersion,
+        ),
+        (
+            json!({"type": "hello", "protocol": 1, "dataset": "../../etc/passwd"}),
+            ErrorCode::UnknownDataset,
+        ),
+    ];
+    for (hello, code) in bad_hellos {
+        let mut client = Client::connect(&server.ws_url()).await.unwrap();
+        refused(&mut client, hello.to_string(), code).await;
+    }
     server.stop().await.unwrap();
 }
 
@@ -455,23 +435,15 @@ async fn a_flood_is_rate_limited_and_the_session_survives() {
     let server = TestServer::start(None).await.unwrap();
     let mut client = Client::connect(&server.ws_url()).await.unwrap();
     client.hello(None, 32, 32).await.unwrap();
-    let camera = json!({"type": "camera", "eye": [0.3, -2.4, 0.1], "target": [0, 0, 0], "up": [0, 0, 1], "fov_deg": 30});
     let burst = 3 * voxlight_protocol::MAX_MESSAGES_PER_SECOND;
     for _ in 0..burst {
-        client.send_json(camera.clone()).await.unwrap();
+        client.send_json(camera([0.3, -2.4, 0.1])).await.unwrap();
     }
     assert_error(&client.recv_text().await.unwrap(), ErrorCode::RateLimited);
     // After a pause the session takes edits again and renders them.
     tokio::time::sleep(std::time::Duration::from_secs(2)).await;
-    client
-        .send_json(json!({"type": "camera", "eye": [2.4, 0.0, 0.2], "target": [0, 0, 0], "up": [0, 0, 1], "fov_deg": 30}))
-        .await
-        .unwrap();
     let accepted = 2 * voxlight_protocol::MAX_MESSAGES_PER_SECOND as u64;
-    let frame = client
-        .frame_where(|f| f.meta.scene_version > accepted)
-        .await
-        .unwrap();
+    let frame = edit_and_frame(&mut client, camera([2.4, 0.0, 0.2]), accepted + 1).await;
     assert_eq!((frame.width, frame.height), (32, 32));
     server.stop().await.unwrap();
 }
@@ -500,16 +472,8 @@ async fn metrics_count_sessions_frames_errors_and_latency() {
     let mut client = Client::connect(&server.ws_url()).await.unwrap();
     client.hello(Some("phantom:sphere"), 32, 32).await.unwrap();
     client.frame_where(|_| true).await.unwrap();
-    client.send_text("garbage".into()).await.unwrap();
-    assert_error(&client.recv_text().await.unwrap(), ErrorCode::BadMessage);
-    client
-        .send_json(json!({"type": "camera", "eye": [0.5, -2.3, 0.4], "target": [0, 0, 0], "up": [0, 0, 1], "fov_deg": 30}))
-        .await
-        .unwrap();
-    client
-        .frame_where(|f| f.meta.scene_version >= 1)
-        .await
-        .unwrap();
+    refused(&mut client, "garbage".into(), ErrorCode::BadMessage).await;
+    edit_and_frame(&mut client, camera([0.5, -2.3, 0.4]), 1).await;
 
     // The writer counts a frame after its send returns, so the client can see it first: wait
     // (bounded) for the counts to catch up before checking them.
@@ -577,7 +541,7 @@ async fn every_hostile_message_gets_an_error_and_the_session_goes_on() {
     let mut client = Client::connect(&server.ws_url()).await.unwrap();
     client.hello(None, 32, 32).await.unwrap();
     client.frame_where(|_| true).await.unwrap();
-    let camera = |eye: &str, fov: &str| {
+    let camera_text = |eye: &str, fov: &str| {
         format!(r#"{{"type":"camera","eye":{eye},"target":[0,0,0],"up":[0,0,1],"fov_deg":{fov}}}"#)
     };
     let nested = |depth: usize| "[".repeat(depth) + &"]".repeat(depth);
@@ -600,12 +564,12 @@ async fn every_hostile_message_gets_an_error_and_the_session_goes_on() {
         r#"{"type":"params","exposure":-Infinity}"#.into(),
         r#"{"type":"params","exposure":"Infinity"}"#.into(),
         r#"{"type":"params","exposure":1e400}"#.into(),
-        camera("[0,-2,1e999]", "30"),
+        camera_text("[0,-2,1e999]", "30"),
         // Wrong JSON types and missing fields.
-        camera(r#""here""#, "30"),
-        camera("[0,-2]", "30"),
-        camera("[0,-2,0,5]", "30"),
-        camera("[0,-2,null]", "30"),
+        camera_text(r#""here""#, "30"),
+        camera_text("[0,-2]", "30"),
+        camera_text("[0,-2,0,5]", "30"),
+        camera_text("[0,-2,null]", "30"),
         r#"{"type":"camera","eye":[0,-2,0]}"#.into(),
         r#"{"type":"viewport","width":"64","height":64}"#.into(),
         r#"{"type":"viewport","width":64.5,"height":64}"#.into(),
@@ -708,10 +672,7 @@ async fn every_hostile_message_gets_an_error_and_the_session_goes_on() {
     .await;
 
     // None of it changed the session: the next edit is version 1, and it renders.
-    client
-        .send_json(json!({"type": "camera", "eye": [2.4, 0.0, 0.2], "target": [0, 0, 0], "up": [0, 0, 1], "fov_deg": 30}))
-        .await
-        .unwrap();
+    client.send_json(camera([2.4, 0.0, 0.2])).await.unwrap();
     let edited = client
         .text_where(|m| matches!(m, ServerMessage::Edited { .. }))
         .await
@@ -1023,14 +984,7 @@ async fn a_corrupt_dataset_fails_to_load_and_the_viewer_picks_another() {
         );
     }
     // Still the sphere, still rendering: an edit gives a frame.
-    client
-        .send_json(json!({"type": "camera", "eye": [2.4, 0.0, 0.2], "target": [0, 0, 0], "up": [0, 0, 1], "fov_deg": 30}))
-        .await
-        .unwrap();
-    client
-        .frame_where(|f| f.meta.scene_version >= 1)
-        .await
-        .unwrap();
+    edit_and_frame(&mut client, camera([2.4, 0.0, 0.2]), 1).await;
     // Another dataset loads.
     client
         .send_json(json!({"type": "dataset", "name": "good.nrrd"}))

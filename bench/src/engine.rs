@@ -31,9 +31,16 @@ pub fn ct_256(data_dir: Option<&Path>) -> anyhow::Result<(String, voxlight_volum
 /// The scene `bench raymarch` and `bench preview` time: the dataset's default TF, the default
 /// camera and lights, a size² viewport, no convergence.
 fn speed_scene(volume: &voxlight_volumes::Volume, size: u32) -> Scene {
+    let tf = voxlight_app::datasets::default_tf(volume);
+    timed_scene(Camera::default(), tf, size)
+}
+
+/// A speed benchmark's scene: `camera` and `tf` under the default lights, a size² viewport,
+/// never converged.
+pub(crate) fn timed_scene(camera: Camera, tf: TransferFunction, size: u32) -> Scene {
     Scene {
-        camera: Camera::default(),
-        tf: voxlight_app::datasets::default_tf(volume),
+        camera,
+        tf,
         lights: default_lights(),
         viewport: Viewport {
             width: size,
@@ -594,6 +601,23 @@ pub(crate) fn orbit_previews(
     Ok(medians)
 }
 
+/// Prints each divisor's median of `orbit_previews` (`label at 1/d: … ms/frame (note)`) and
+/// returns them as the JSON results' `previews` list.
+pub(crate) fn report_divisors(
+    label: &str,
+    note: &str,
+    medians: &[(u32, f64)],
+    frames: u32,
+) -> Vec<serde_json::Value> {
+    medians
+        .iter()
+        .map(|&(divisor, ms)| {
+            eprintln!("{label} at 1/{divisor}: {ms:.1} ms/frame ({note})");
+            json!({"divisor": divisor, "median_ms": ms, "frames": frames})
+        })
+        .collect()
+}
+
 /// ms per interactive preview frame (engine::preview: view rays, tone mapping and readback)
 /// on the 256³ CT of `bench raymarch`, at each size and resolution divisor, over an orbit of
 /// 5° per frame (as VTK's baseline turns its camera), with the light volume's build time and
@@ -631,13 +655,12 @@ pub fn preview(options: &RaymarchBench) -> anyhow::Result<serde_json::Value> {
                 ];
             },
         )?;
-        let mut per_divisor = Vec::new();
-        for (divisor, ms) in medians {
-            eprintln!(
-                "preview {size}x{size} at 1/{divisor}: {ms:.1} ms/frame (raymarch iteration {raymarch_ms:.0} ms, light volume {light_ms:.0} ms)"
-            );
-            per_divisor.push(json!({"divisor": divisor, "median_ms": ms, "frames": frames}));
-        }
+        let per_divisor = report_divisors(
+            &format!("preview {size}x{size}"),
+            &format!("raymarch iteration {raymarch_ms:.0} ms, light volume {light_ms:.0} ms"),
+            &medians,
+            frames,
+        );
         results.push(json!({
             "width": size,
             "height": size,

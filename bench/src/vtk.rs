@@ -13,9 +13,9 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use serde_json::json;
+use voxlight_engine::Engine;
 use voxlight_engine::preview::LightDetail;
-use voxlight_engine::{Engine, Scene};
-use voxlight_protocol::{Camera, TfPoint, TransferFunction, Viewport, default_lights};
+use voxlight_protocol::{Camera, TfPoint, TransferFunction};
 use voxlight_volumes::Volume;
 
 /// One of bench_vtk.py's transfer functions: (data value, α) and (data value, rgb), piecewise
@@ -203,17 +203,7 @@ pub fn preview_vtk(options: &PreviewVtkBench) -> anyhow::Result<serde_json::Valu
         let dataset = if name == "chest" { "ct" } else { name.as_str() };
         let (camera, axis) = vtk_camera(dataset, volume.world_extent());
         for &size in options.sizes {
-            let mut scene = Scene {
-                camera,
-                tf: tf.clone(),
-                lights: default_lights(),
-                viewport: Viewport {
-                    width: size,
-                    height: size,
-                },
-                target_iterations: u32::MAX,
-                ..Scene::default()
-            };
+            let mut scene = crate::engine::timed_scene(camera, tf.clone(), size);
             scene.params.density_scale = density_scale;
             let mut renderer =
                 engine.create_renderer("raymarch", Arc::clone(&gpu_volume), &scene)?;
@@ -230,13 +220,12 @@ pub fn preview_vtk(options: &PreviewVtkBench) -> anyhow::Result<serde_json::Valu
                     scene.camera.up = rotate(camera.up, axis, angle);
                 },
             )?;
-            let mut per_divisor = Vec::new();
-            for (divisor, ms) in medians {
-                eprintln!(
-                    "preview-vtk {dataset} {size}x{size} at 1/{divisor}: {ms:.1} ms/frame (light volume {light_ms:.0} ms)"
-                );
-                per_divisor.push(json!({"divisor": divisor, "median_ms": ms, "frames": frames}));
-            }
+            let per_divisor = crate::engine::report_divisors(
+                &format!("preview-vtk {dataset} {size}x{size}"),
+                &format!("light volume {light_ms:.0} ms"),
+                &medians,
+                frames,
+            );
             results.push(json!({
                 "dataset": dataset,
                 "path": rel,

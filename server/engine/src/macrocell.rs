@@ -1,7 +1,11 @@
-//! Macrocells for empty-space skipping (and, later, majorants for delta tracking): the range
-//! of data values each 8³ block's trilinear samples can take, and from a TF the largest opacity
-//! that range can classify to. A cell whose largest opacity is exactly zero contributes nothing
-//! and is skipped without changing any estimate.
+//! Macrocells: the range of data values each 8³ block's trilinear samples can take, and from a
+//! TF the largest opacity that range can classify to.
+//!
+//! - Empty-space skipping: a cell whose largest opacity is exactly zero contributes nothing and
+//!   is skipped without changing any estimate.
+//! - Majorants: delta tracking (`pathtrace`, `irradiance`; `manylight` in dense media) samples
+//!   free flights against each cell's `density_scale · largest opacity`.
+//! - Historygram bins (`bin_masks`): what a quantity that read a cell can depend on.
 
 use voxlight_volumes::Volume;
 
@@ -154,6 +158,18 @@ mod tests {
         Volume::from_normalized("test", dims, [1.0; 3], data).unwrap()
     }
 
+    /// A white TF through (value, opacity) points.
+    fn white_tf(points: &[(f32, f32)]) -> TransferFunction {
+        let point = |&(value, opacity): &(f32, f32)| TfPoint {
+            value,
+            color: [1.0; 3],
+            opacity,
+        };
+        TransferFunction {
+            points: points.iter().map(point).collect(),
+        }
+    }
+
     #[test]
     fn range_max_matches_brute_force() {
         let values: Vec<f32> = (0..100).map(|i| ((i * 37) % 101) as f32).collect();
@@ -178,25 +194,7 @@ mod tests {
         });
         let grid = RangeGrid::build(&vol);
         assert_eq!(grid.dims, [3, 2, 3]);
-        let tf = TransferFunction {
-            points: vec![
-                TfPoint {
-                    value: 0.30,
-                    color: [1.0; 3],
-                    opacity: 0.0,
-                },
-                TfPoint {
-                    value: 0.32,
-                    color: [1.0; 3],
-                    opacity: 0.9,
-                },
-                TfPoint {
-                    value: 0.34,
-                    color: [1.0; 3],
-                    opacity: 0.0,
-                },
-            ],
-        };
+        let tf = white_tf(&[(0.30, 0.0), (0.32, 0.9), (0.34, 0.0)]);
         let lut = bake(&tf);
         let bound = grid.max_opacity(&lut);
         let mut state = 12345u64;
@@ -254,20 +252,7 @@ mod tests {
             if x < 4 && y < 4 && z < 4 { 65535 } else { 0 }
         });
         let grid = RangeGrid::build(&vol);
-        let tf = TransferFunction {
-            points: vec![
-                TfPoint {
-                    value: 0.5,
-                    color: [1.0; 3],
-                    opacity: 0.0,
-                },
-                TfPoint {
-                    value: 1.0,
-                    color: [1.0; 3],
-                    opacity: 1.0,
-                },
-            ],
-        };
+        let tf = white_tf(&[(0.5, 0.0), (1.0, 1.0)]);
         let bound = grid.max_opacity(&bake(&tf));
         assert_eq!(bound[0], 1.0);
         assert_eq!(bound[1], 1.0, "the neighbour reads into the corner block");

@@ -148,22 +148,15 @@ impl Preview {
     ) -> Self {
         let gpu = &engine.gpu;
         let storage = wgpu::BufferUsages::STORAGE;
-        let scene_buf = gpu.buffer(
-            "preview scene",
-            size_of::<SceneUniforms>() as u64,
-            wgpu::BufferUsages::UNIFORM,
-        );
-        let params_buf = gpu.buffer(
-            "preview params",
-            size_of::<PreviewParams>() as u64,
-            wgpu::BufferUsages::UNIFORM,
-        );
+        let uniform =
+            |label, size: usize| gpu.buffer(label, size as u64, wgpu::BufferUsages::UNIFORM);
+        // What the CPU reads back (or copies) too.
+        let readable =
+            |label, size| gpu.buffer(label, size, storage | wgpu::BufferUsages::COPY_SRC);
+        let scene_buf = uniform("preview scene", size_of::<SceneUniforms>());
+        let params_buf = uniform("preview params", size_of::<PreviewParams>());
         let tf_lut = gpu.buffer("preview tf lut", (TF_LUT_SIZE * 16) as u64, storage);
-        let lights = gpu.buffer(
-            "preview lights",
-            (MAX_LIGHTS * size_of::<GpuLight>()) as u64,
-            wgpu::BufferUsages::UNIFORM,
-        );
+        let lights = uniform("preview lights", MAX_LIGHTS * size_of::<GpuLight>());
         let cell_max_opacity = gpu.buffer(
             "preview cell max opacity",
             (volume.ranges.cell_count() * 4) as u64,
@@ -180,27 +173,14 @@ impl Preview {
         );
         let (width, height) = (scene.viewport.width, scene.viewport.height);
         let pixels = width as u64 * height as u64;
-        let image = gpu.buffer(
-            "preview image",
-            pixels * 16,
-            storage | wgpu::BufferUsages::COPY_SRC,
-        );
+        let image = readable("preview image", pixels * 16);
         // Only a GI technique's preview writes it (a placeholder binding otherwise).
-        let image_multiple = gpu.buffer(
+        let image_multiple = readable(
             "preview image multiple scattering",
             if multiple_scattering { pixels * 8 } else { 8 },
-            storage | wgpu::BufferUsages::COPY_SRC,
         );
-        let tone_params = gpu.buffer(
-            "preview tone params",
-            size_of::<ToneParams>() as u64,
-            wgpu::BufferUsages::UNIFORM,
-        );
-        let rgba = gpu.buffer(
-            "preview rgba8",
-            pixels * 4,
-            storage | wgpu::BufferUsages::COPY_SRC,
-        );
+        let tone_params = uniform("preview tone params", size_of::<ToneParams>());
+        let rgba = readable("preview rgba8", pixels * 4);
         let bind_group = engine.preview.bind_group(
             gpu,
             &PreviewBindings {
@@ -283,25 +263,14 @@ impl Preview {
 
     /// Renders one preview of `scene` at `divisor` with its brightness matched by `brightness`
     /// and reads it back tone-mapped; a stale light volume is rebuilt at `detail`.
-    pub fn render(
-        &mut self,
-        engine: &Engine,
-        scene: &Scene,
-        divisor: u32,
-        detail: LightDetail,
-        brightness: &BrightnessMatch,
-    ) -> Result<(Frame, PreviewReport), EngineError> {
-        self.render_until(engine, scene, divisor, detail, brightness, None)?
-            .ok_or_else(|| EngineError::Gpu("a preview nobody could stop was stopped".into()))
-    }
-
-    /// As `render`, but with `stop`, a preview expected to take longer than a part's time
-    /// (`PART_TIME`) runs in parts (grid planes of the light volume, interleaved bands of image
-    /// rows) and `stop` is asked between them: when it says so the preview is abandoned (None;
-    /// a partly rebuilt light volume counts as stale), so that an edit that came meanwhile
-    /// waits for one part, not for a full-resolution preview (seconds on a software adapter).
-    /// Parts cost throughput (a submission and a wait each), so a preview nobody may stop runs
-    /// whole.
+    ///
+    /// With `stop`, a preview expected to take longer than a part's time (`PART_TIME`) runs in
+    /// parts (grid planes of the light volume, interleaved bands of image rows) and `stop` is
+    /// asked between them: when it says so the preview is abandoned (None; a partly rebuilt
+    /// light volume counts as stale), so that an edit that came meanwhile waits for one part,
+    /// not for a full-resolution preview (seconds on a software adapter). Parts cost
+    /// throughput (a submission and a wait each), so a preview nobody may stop runs whole (and
+    /// always returns Some).
     pub fn render_until(
         &mut self,
         engine: &Engine,
@@ -396,21 +365,12 @@ impl Preview {
                 let planes = planes_per_part.min(depth - z);
                 params.z_offset = z;
                 let started = Instant::now();
-                gpu.queue
-                    .write_buffer(&self.params_buf, 0, bytemuck::bytes_of(&params));
-                let mut encoder =
-                    gpu.device
-                        .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                            label: Some("preview light volume"),
-                        });
-                engine.preview.encode_light(
-                    &mut encoder,
-                    &self.bind_group,
-                    self.built_dims,
-                    planes,
-                    None,
-                );
-                gpu.queue.submit([encoder.finish()]);
+                self.submit_with(engine, &params, "preview light volume", |encoder| {
+                    let group = &self.bind_group;
+                    engine
+                        .preview
+                        .encode_light(encoder, group, self.built_dims, planes, None);
+                });
                 gpu.wait_idle()?;
                 let took = started.elapsed();
                 light_time += took;
@@ -443,20 +403,13 @@ impl Preview {
             }
             params.row_offset = band;
             params.row_stride = bands;
-            gpu.queue
-                .write_buffer(&self.params_buf, 0, bytemuck::bytes_of(&params));
-            let mut encoder = gpu
-                .device
-                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                    label: Some("preview view"),
-                });
-            engine.preview.encode_view(
-                &mut encoder,
-                &self.bind_group,
-                (width, band_rows(height, band, bands)),
-                None,
-            );
-            gpu.queue.submit([encoder.finish()]);
+            self.submit_with(engine, &params, "preview view", |encoder| {
+                let rows = band_rows(height, band, bands);
+                let group = &self.bind_group;
+                engine
+                    .preview
+                    .encode_view(encoder, group, (width, rows), None);
+            });
             if bands > 1 {
                 gpu.wait_idle()?;
             }
@@ -469,11 +422,7 @@ impl Preview {
         };
         gpu.queue
             .write_buffer(&self.tone_params, 0, bytemuck::bytes_of(&tone));
-        let mut encoder = gpu
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some("preview tone map"),
-            });
+        let mut encoder = encoder(engine, "preview tone map");
         engine
             .tonemap
             .encode(&mut encoder, &self.tone_bind_group, width, height);
@@ -501,6 +450,21 @@ impl Preview {
         Ok(Some((frame, report)))
     }
 
+    /// Writes `params` and submits what `encode` records, on its own.
+    fn submit_with(
+        &self,
+        engine: &Engine,
+        params: &PreviewParams,
+        label: &str,
+        encode: impl FnOnce(&mut wgpu::CommandEncoder),
+    ) {
+        let queue = &engine.gpu.queue;
+        queue.write_buffer(&self.params_buf, 0, bytemuck::bytes_of(params));
+        let mut encoder = encoder(engine, label);
+        encode(&mut encoder);
+        queue.submit([encoder.finish()]);
+    }
+
     /// The linear radiance of the last preview (row 0 at the top), for tests and benchmarks.
     pub fn read_hdr(&self, engine: &Engine, divisor: u32) -> Result<Vec<[f32; 3]>, EngineError> {
         let (width, height) = preview_size(self.width, self.height, divisor);
@@ -508,8 +472,7 @@ impl Preview {
             engine
                 .gpu
                 .read_buffer_range(&self.image, 0, width as u64 * height as u64 * 16)?;
-        let pixels: &[[f32; 4]] = bytemuck::try_cast_slice(&bytes)
-            .map_err(|e| EngineError::Gpu(format!("preview readback has an odd size: {e}")))?;
+        let pixels: &[[f32; 4]] = cast_readback(&bytes)?;
         Ok(pixels.iter().map(|p| [p[0], p[1], p[2]]).collect())
     }
 
@@ -522,15 +485,13 @@ impl Preview {
         let (width, height) = preview_size(self.width, self.height, divisor);
         let pixels = width as u64 * height as u64;
         let bytes = engine.gpu.read_buffer_range(&self.image, 0, pixels * 16)?;
-        let image: &[[f32; 4]] = bytemuck::try_cast_slice(&bytes)
-            .map_err(|e| EngineError::Gpu(format!("preview readback has an odd size: {e}")))?;
+        let image: &[[f32; 4]] = cast_readback(&bytes)?;
         let multiple = if self.multiple_scattering {
             let bytes = engine
                 .gpu
                 .read_buffer_range(&self.image_multiple, 0, pixels * 8)?;
             // pack2x16float: the low half of each u32 is the first value.
-            let halves: &[[u16; 4]] = bytemuck::try_cast_slice(&bytes)
-                .map_err(|e| EngineError::Gpu(format!("preview readback has an odd size: {e}")))?;
+            let halves: &[[u16; 4]] = cast_readback(&bytes)?;
             let f = |bits: u16| half::f16::from_bits(bits).to_f32();
             halves.iter().map(|h| [f(h[0]), f(h[1]), f(h[2])]).collect()
         } else {
@@ -538,6 +499,17 @@ impl Preview {
         };
         Ok(split_means(image, &multiple, &brightness, env))
     }
+}
+
+fn encoder(engine: &Engine, label: &str) -> wgpu::CommandEncoder {
+    let descriptor = wgpu::CommandEncoderDescriptor { label: Some(label) };
+    engine.gpu.device.create_command_encoder(&descriptor)
+}
+
+/// Read-back bytes as pixels.
+fn cast_readback<T: bytemuck::Pod>(bytes: &[u8]) -> Result<&[T], EngineError> {
+    bytemuck::try_cast_slice(bytes)
+        .map_err(|e| EngineError::Gpu(format!("preview readback has an odd size: {e}")))
 }
 
 /// Splits preview pixels (rgb = gain · single + multiple_weight · multiple + env · T, w = T)
