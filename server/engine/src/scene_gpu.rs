@@ -1,4 +1,4 @@
-//! GPU twins of the shared scene structs in shaders/scene.wgsl (identical field names).
+//! GPU twins of the shared scene structs in shaders/shared/scene.wgsl (identical field names).
 
 use bytemuck::{Pod, Zeroable};
 use voxlight_protocol::Light;
@@ -52,8 +52,7 @@ pub struct GpuLight {
     pub pad0: f32,
 }
 
-/// Directional and point lights for the GPU, and
-/// the summed environment radiance.
+/// Directional and point lights for the GPU, and the summed environment radiance.
 pub fn gpu_lights(lights: &[Light]) -> (Vec<GpuLight>, [f32; 3]) {
     let mut out = Vec::new();
     let mut env = [0.0f32; 3];

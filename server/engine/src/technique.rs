@@ -50,7 +50,8 @@ pub trait Technique: Send {
     /// it where a whole image's worth of blocks would take longer (a frame of fewer blocks
     /// schedules its cache work differently, so it is not the default). Default: ignored.
     fn set_part_time(&mut self, _part: Option<Duration>) {}
-    /// The HDR estimate: width × height `vec4<f32>`, rgb = sum of samples, w = sample count.
+    /// The HDR estimate: width × height `vec4<f32>` whose rgb / w is the mean radiance (rgb the
+    /// sum of samples and w their count, or, as `photon` composites, one estimate and w = 1).
     fn output(&self) -> &wgpu::Buffer;
     fn iteration(&self) -> u32;
     /// Iterations after which the picture is converged (a technique may stop earlier than

@@ -13,7 +13,7 @@ pub struct GpuVolume {
     /// World-space box size, longest side 1 (DESIGN.md).
     pub extent: [f32; 3],
     pub bytes: u64,
-    /// Data range per macrocell, for empty-space skipping.
+    /// Data range per macrocell (empty-space skipping, majorants, historygram bins).
     pub ranges: RangeGrid,
 }
 
