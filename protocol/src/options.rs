@@ -85,6 +85,10 @@ pub struct ManylightOptions {
     /// Radius of a virtual spherical light in world units.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub vsl_radius: Option<f32>,
+    /// Iterations rendered with one set of virtual lights before an independent new set is
+    /// traced (0: one set for the whole picture).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub iterations_per_set: Option<u32>,
 }
 
 /// `manylight`: transmittance from a virtual light to a view sample.
@@ -220,7 +224,8 @@ impl TechniqueOptions {
             face_res,
             nodes,
             transmittance,
-            vsl_radius
+            vsl_radius,
+            iterations_per_set
         );
         let (i, e) = (&mut self.irradiance, &edit.irradiance);
         overlay!(

@@ -171,6 +171,11 @@ impl Progressive {
         Ok(technique)
     }
 
+    /// No iteration is part way through its bands.
+    pub(crate) fn between_iterations(&self) -> bool {
+        self.next_band == 0
+    }
+
     /// Runs every iteration as `bands` bands, whatever they take: for tests and benchmarks of
     /// the banded path, which otherwise only long iterations take.
     pub fn fix_bands(&mut self, bands: u32) {

@@ -14,7 +14,8 @@ impl ManylightConfig {
         in_range("manylight.max_bounces", m.max_bounces, 1, 64)?;
         in_range("manylight.face_res", m.face_res, 4, 64)?;
         in_range("manylight.nodes", m.nodes, 2, MAX_NODES)?;
-        in_range("manylight.vsl_radius", m.vsl_radius, 1e-4, 0.25)
+        in_range("manylight.vsl_radius", m.vsl_radius, 1e-4, 0.25)?;
+        in_range("manylight.iterations_per_set", m.iterations_per_set, 0, 1024)
     }
 
     /// The defaults with what `options` sets.
@@ -32,6 +33,7 @@ impl ManylightConfig {
                 Some(Transmittance::RayMarched) => TransmittanceMode::RayMarched,
             },
             vsl_radius: options.vsl_radius.unwrap_or(d.vsl_radius),
+            iterations_per_set: options.iterations_per_set.unwrap_or(d.iterations_per_set),
         }
     }
 
@@ -48,6 +50,7 @@ impl ManylightConfig {
                 TransmittanceMode::RayMarched => Transmittance::RayMarched,
             }),
             vsl_radius: Some(self.vsl_radius),
+            iterations_per_set: Some(self.iterations_per_set),
         }
     }
 }

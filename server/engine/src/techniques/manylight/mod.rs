@@ -1,13 +1,15 @@
-//! Technique `manylight` (Weber et al. 2013, ../shared/papers/many-light-transmittance-caching.txt):
-//! single scattering from the real lights by the `raymarch` estimator, plus multiple scattering
-//! gathered from virtual spherical lights (VSLs) left by random walks from the lights, with the
-//! transmittance from each VSL read from its adaptive volumetric shadow map (AVSM) or, as the
-//! baseline, ray marched. The VSLs and AVSMs are built when the session starts and rebuilt
-//! after edits of the TF, lights or parameters; iterations then refine the picture (pixel and
-//! scattering-location jitter) with the same virtual lights. After an edit the first frame
-//! reuses the previous virtual lights and shadow maps (an immediate, approximate response; the
-//! paper first re-weights them with its Eq. 6, which is not done here), then they are rebuilt
-//! and the picture restarts.
+//! Technique `manylight` (Weber et al. 2013, ../shared/papers/many-light-transmittance-caching.txt;
+//! steps in docs/architecture.md):
+//! - single scattering from the real lights by the `raymarch` estimator; multiple scattering
+//!   gathered from virtual spherical lights (VSLs) left by random walks from the lights, the
+//!   transmittance from each read from its adaptive volumetric shadow map (AVSM) or ray marched;
+//! - VSLs and AVSMs are built at the start and after edits of the TF, lights or parameters; a TF
+//!   edit retraces only the paths and rebuilds only the maps it can change (historygrams);
+//! - the first frame after an edit reuses the previous lights and maps, re-weighted (the
+//!   paper's Eq. 6 for TF edits, exact ratios for g and density), then they are rebuilt;
+//! - beyond the paper: past the first iteration, every `iterations_per_set` iterations a new,
+//!   independent set of light paths is traced and averaged in, so the picture converges
+//!   instead of keeping one set's structured error.
 
 mod config;
 pub mod gpu;
@@ -41,6 +43,10 @@ pub struct ManylightConfig {
     pub mode: TransmittanceMode,
     /// VSL radius in world units (the volume's longest side is 1).
     pub vsl_radius: f32,
+    /// Iterations rendered with one set of virtual lights before the next, independent set
+    /// is traced (0: one set for the whole picture, as in the paper). With new sets the
+    /// picture converges to the VSL-radius-limited answer instead of one set's.
+    pub iterations_per_set: u32,
 }
 
 impl Default for ManylightConfig {
@@ -54,6 +60,7 @@ impl Default for ManylightConfig {
             nodes: 8,
             mode: TransmittanceMode::AvsmTrilinear,
             vsl_radius: 0.02,
+            iterations_per_set: 1,
         }
     }
 }
@@ -126,6 +133,11 @@ pub struct Manylight {
     pending: Option<PendingUpdate>,
     /// A full rebuild's maps still to build (`begin_rebuild`), a few per step.
     pending_maps: Option<PendingMaps>,
+    /// Which independent set of light paths the slots hold (0 after `new`; each new set in
+    /// `step` takes the next; it picks the paths' random numbers).
+    light_set: u32,
+    /// Iterations completed with the current set.
+    set_iterations: u32,
 }
 
 /// The rest of a full rebuild in `step`: the lights are traced, the maps of slots
@@ -137,6 +149,9 @@ struct PendingMaps {
     vls: Duration,
     /// How long the maps built so far took (their rate sizes the next part).
     building: Duration,
+    /// The picture restarts with the new lights (an edit's rebuild), or goes on
+    /// averaging (a new independent set of the same scene).
+    restarts_picture: bool,
 }
 
 /// The rest of a TF edit's partial rebuild.
@@ -317,6 +332,8 @@ impl Manylight {
             last_update: None,
             pending_maps: None,
             pending: None,
+            light_set: 0,
+            set_iterations: 0,
         };
         technique.write_params(engine, scene);
         Ok(technique)
@@ -372,7 +389,7 @@ impl Manylight {
             face_res: self.config.face_res,
             nodes: self.config.nodes,
             mode: self.config.mode as u32,
-            seed: scene.seed,
+            seed: light_set_seed(scene.seed, self.light_set),
             vsl_radius: self.config.vsl_radius,
             built_density: self.built_density,
             power_scale,
@@ -416,7 +433,12 @@ impl Manylight {
     /// `rebuild` in parts, for `step`: traces the lights now and leaves their maps to
     /// `advance_maps` (an edit then waits for a few maps, not for all: ~3 s at 512² on
     /// lavapipe). Until the last is built no iteration is rendered.
-    fn begin_rebuild(&mut self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
+    fn begin_rebuild(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        restarts_picture: bool,
+    ) -> Result<(), EngineError> {
         let vls = self.trace_lights(engine, scene, None)?;
         // Every slot's map words start cleared, as a whole build's do.
         self.clear_map_hists(engine);
@@ -425,8 +447,31 @@ impl Manylight {
             started: Instant::now(),
             vls,
             building: Duration::ZERO,
+            restarts_picture,
         });
         Ok(())
+    }
+
+    /// Whether the next iteration wants a new independent set of virtual lights: the current
+    /// one has served its iterations, and the picture is between iterations past its first
+    /// (so a camera drag, which renders first iterations only, never waits for a set).
+    fn wants_new_set(&self) -> bool {
+        self.config.iterations_per_set > 0
+            && self.set_iterations >= self.config.iterations_per_set
+            && self.base.iteration() > 0
+            && self.base.between_iterations()
+    }
+
+    /// Traces the next independent set of light paths; its maps are built by `advance_maps`
+    /// while the picture waits (it keeps averaging once they are built).
+    fn begin_new_set(&mut self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
+        self.light_set = self.light_set.wrapping_add(1);
+        self.begin_rebuild(engine, scene, false)
+    }
+
+    /// The light set the slots hold (see `light_set`).
+    pub fn light_set(&self) -> u32 {
+        self.light_set
     }
 
     /// Clears every slot's map historygram words (a build of all maps starts from them).
@@ -537,6 +582,7 @@ impl Manylight {
         self.count = lights.len() as u32;
         self.built_lights = lights;
         self.weighted_g = scene.params.g;
+        self.set_iterations = 0;
         self.write_params(engine, scene);
         self.stale = false;
         Ok(started.elapsed())
@@ -1151,17 +1197,19 @@ impl Technique for Manylight {
             if self.tf_only && self.count > 0 && self.pending_maps.is_none() {
                 self.begin_tf_update(engine, scene)?;
             } else {
-                self.begin_rebuild(engine, scene)?;
+                self.begin_rebuild(engine, scene, true)?;
             }
             self.tf_only = false;
             self.base.restart();
         }
         let mut done = 0;
         loop {
-            if self.pending_maps.is_some() {
+            if let Some(restarts) = self.pending_maps.as_ref().map(|p| p.restarts_picture) {
                 // A full rebuild's maps, in parts; the picture waits for the last.
                 self.advance_maps(engine, scene, self.maps_per_step(budget))?;
-                self.base.restart();
+                if restarts {
+                    self.base.restart();
+                }
             } else if self.pending.is_some() {
                 // A few maps per step, sized to half the budget by the last build's rate. The
                 // picture waits for the last of them (the immediate response stays on screen):
@@ -1171,7 +1219,10 @@ impl Technique for Manylight {
                 self.advance_tf_update(engine, scene, self.maps_per_step(budget))?;
                 self.base.restart();
             } else if self.base.iteration() < target {
-                if self.iterate_band(engine, scene)? {
+                if self.wants_new_set() {
+                    self.begin_new_set(engine, scene)?;
+                } else if self.iterate_band(engine, scene)? {
+                    self.set_iterations += 1;
                     done += 1;
                 }
             } else {
@@ -1229,6 +1280,11 @@ impl Technique for Manylight {
             ..base
         }
     }
+}
+
+/// The seed of light set `set`'s paths: the scene's for the first, independent for the others.
+fn light_set_seed(seed: u32, set: u32) -> u32 {
+    seed ^ set.wrapping_mul(0x9e37_79b9)
 }
 
 /// Henyey-Greenstein phase function (shared/common.wgsl's phase_hg).
