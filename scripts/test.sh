@@ -46,13 +46,15 @@ done
 # The other techniques against the same Mitsuba image (cached by scene under target/mitsuba),
 # at budgets below pathtrace's time; tolerances from docs/validation.md (issue 25): photon at
 # its defaults (8 passes) within 2% in the mean and 5% block RMSE, on the sun scene and on a
-# real CT; irradiance as pathtrace; manylight with the 2048 virtual lights it needs for that.
+# real CT; irradiance as pathtrace; manylight at its defaults (a new set of 256 virtual lights
+# per iteration) for 16 iterations, within 2% in the mean and 8% block RMSE (its volume blocks
+# measure 6.1%; one set of lights, the old default, measures 14% / 25%).
 python3 scripts/compare_mitsuba.py --technique photon --size 64 --spp 8 --ref-spp 256 \
   --tolerance 0.05 --mean-tolerance 0.02 --voxlight target/debug/voxlight --out target/mitsuba/photon
 python3 scripts/compare_mitsuba.py --technique photon --scene ct --size 64 --spp 8 --ref-spp 256 \
   --tolerance 0.05 --mean-tolerance 0.02 --voxlight target/debug/voxlight --out target/mitsuba/photon-ct
 python3 scripts/compare_mitsuba.py --technique irradiance --size 64 --spp 256 \
   --mean-tolerance 0.01 --voxlight target/debug/voxlight --out target/mitsuba/irradiance
-python3 scripts/compare_mitsuba.py --technique manylight --size 64 --spp 4 --ref-spp 256 \
-  --options '{"manylight":{"virtual_lights":2048}}' --tolerance 0.10 --mean-tolerance 0.02 \
+python3 scripts/compare_mitsuba.py --technique manylight --size 64 --spp 16 --ref-spp 256 \
+  --tolerance 0.08 --mean-tolerance 0.02 \
   --voxlight target/debug/voxlight --out target/mitsuba/manylight
