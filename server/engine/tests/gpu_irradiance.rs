@@ -10,6 +10,7 @@ mod common;
 use std::sync::Arc;
 
 use common::*;
+use voxlight_engine::brightness::mean_rgb as mean;
 use voxlight_engine::image_stats::{luminance, relative_rms_luminance};
 use voxlight_engine::techniques::irradiance::{
     CachedLight, Irradiance, IrradianceConfig, Locking, ViewEvent,
@@ -41,16 +42,6 @@ fn run(renderer: &mut Renderer, scene: &Scene, frames: u32) -> Vec<[f32; 3]> {
             .expect("step");
     }
     renderer.read_hdr(engine).expect("hdr")
-}
-
-fn mean(hdr: &[[f32; 3]]) -> [f64; 3] {
-    let mut m = [0f64; 3];
-    for p in hdr {
-        for k in 0..3 {
-            m[k] += p[k] as f64 / hdr.len() as f64;
-        }
-    }
-    m
 }
 
 fn details(renderer: &Renderer) -> voxlight_engine::TechniqueStats {

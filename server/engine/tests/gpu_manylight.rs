@@ -7,32 +7,11 @@ mod common;
 use std::time::Duration;
 
 use common::*;
+use voxlight_engine::image_stats::{mean, relative_rms};
 use voxlight_engine::techniques::manylight::gpu::TransmittanceMode;
 use voxlight_engine::techniques::manylight::{Manylight, ManylightConfig};
 use voxlight_engine::{Renderer, Technique};
 use voxlight_protocol::Light;
-
-fn mean(hdr: &[[f32; 3]]) -> f64 {
-    hdr.iter()
-        .map(|p| p[0] as f64 + p[1] as f64 + p[2] as f64)
-        .sum::<f64>()
-        / (3.0 * hdr.len() as f64)
-}
-
-/// Relative RMS difference of two images (over the mean of `reference`).
-fn relative_rms(image: &[[f32; 3]], reference: &[[f32; 3]]) -> f64 {
-    let m = mean(reference);
-    let sq: f64 = image
-        .iter()
-        .zip(reference)
-        .map(|(a, b)| {
-            (0..3)
-                .map(|k| (a[k] as f64 - b[k] as f64).powi(2))
-                .sum::<f64>()
-        })
-        .sum();
-    (sq / (3.0 * image.len() as f64)).sqrt() / m
-}
 
 fn render_manylight(
     volume: std::sync::Arc<voxlight_engine::GpuVolume>,
