@@ -105,10 +105,9 @@ fn virtual_lights_carry_the_lights_power_into_the_medium() {
     let _ = technique.name();
 }
 
-#[test]
-fn gathered_multiple_scattering_agrees_with_the_path_tracer() {
-    let (_, volume) = sphere(32);
-    let s = scene(
+/// The 32³ sphere scene of the gather tests at 24²: a directional light and the sky.
+fn sun_and_sky(iterations: u32) -> voxlight_engine::Scene {
+    scene(
         ramp_tf(0.9),
         vec![
             Light::Directional {
@@ -119,8 +118,14 @@ fn gathered_multiple_scattering_agrees_with_the_path_tracer() {
         ],
         12.0,
         24,
-        8,
-    );
+        iterations,
+    )
+}
+
+#[test]
+fn gathered_multiple_scattering_agrees_with_the_path_tracer() {
+    let (_, volume) = sphere(32);
+    let s = sun_and_sky(8);
     // Ray-marched transmittance, so only the virtual lights' sampling is tested here.
     let config = ManylightConfig {
         vls: 4096,
@@ -165,19 +170,7 @@ fn gathered_multiple_scattering_agrees_with_the_path_tracer() {
 #[test]
 fn new_light_sets_make_the_error_fall_with_iterations() {
     let (_, volume) = sphere(32);
-    let base = scene(
-        ramp_tf(0.9),
-        vec![
-            Light::Directional {
-                direction: [0.3, 0.8, -0.5],
-                irradiance: [3.0; 3],
-            },
-            Light::Environment { radiance: [0.2; 3] },
-        ],
-        12.0,
-        24,
-        16,
-    );
+    let base = sun_and_sky(16);
     let (_, reference) = render_with("pathtrace", volume.clone(), &{
         let mut long = base.clone();
         long.target_iterations = 1024;
@@ -208,8 +201,14 @@ fn new_light_sets_make_the_error_fall_with_iterations() {
     );
     // Measured: 0.38 with one set; 0.32 and 0.17 with new sets (their error falls as
     // 1/√iterations).
-    assert!(new_64 < 0.7 * new_16, "{new_64} after 64, {new_16} after 16");
-    assert!(new_64 < 0.6 * one_set, "{new_64} with new sets, {one_set} with one");
+    assert!(
+        new_64 < 0.7 * new_16,
+        "{new_64} after 64, {new_16} after 16"
+    );
+    assert!(
+        new_64 < 0.6 * one_set,
+        "{new_64} with new sets, {one_set} with one"
+    );
 }
 
 #[test]

@@ -15,7 +15,12 @@ impl ManylightConfig {
         in_range("manylight.face_res", m.face_res, 4, 64)?;
         in_range("manylight.nodes", m.nodes, 2, MAX_NODES)?;
         in_range("manylight.vsl_radius", m.vsl_radius, 1e-4, 0.25)?;
-        in_range("manylight.iterations_per_set", m.iterations_per_set, 0, 1024)
+        in_range(
+            "manylight.iterations_per_set",
+            m.iterations_per_set,
+            0,
+            1024,
+        )
     }
 
     /// The defaults with what `options` sets.

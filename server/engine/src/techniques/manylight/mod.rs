@@ -630,8 +630,11 @@ impl Manylight {
             [paths.div_ceil(64), 1, 1],
         );
         // Only the slots of the paths traced.
-        let bytes = paths as u64 * self.config.max_bounces as u64 * size_of::<VirtualLight>() as u64;
-        let bytes = engine.gpu.read_buffer_range(&self.buffers.scratch, 0, bytes)?;
+        let bytes =
+            paths as u64 * self.config.max_bounces as u64 * size_of::<VirtualLight>() as u64;
+        let bytes = engine
+            .gpu
+            .read_buffer_range(&self.buffers.scratch, 0, bytes)?;
         Ok(bytemuck::cast_slice(&bytes).to_vec())
     }
 
