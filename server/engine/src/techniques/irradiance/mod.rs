@@ -1,15 +1,14 @@
-//! Technique `irradiance` (Khlebnikov et al. 2014, ../shared/papers/parallel-irradiance-caching.txt):
-//! Monte-Carlo volume rendering in the style of Exposure Render whose first scattering event
-//! takes its irradiance from a cache built while rendering. Three procedures share each frame
-//! (§4.1), in the paper's time fractions driven by the cache hit rate (§6): rendering (16 × 8
-//! blocks, optionally drawn by "expected gain" priorities), cache-entry creation (the 7-point
-//! estimate with virtual extinction coefficients and ellipsoidal zones oriented along the
-//! extinction gradient, §4.2) and cache update (radius reduction where overlapping entries
-//! disagree, §4.3). Entries live in a multi-reference octree (§4.4, built on the CPU,
-//! `octree`); object- or screen-space locking keeps neighbouring misses from creating the same
-//! entry (§5). The paper frames its procedures in Softshell's persistent megakernel; here each
-//! is a compute pass and the frame's fractions become dispatch counts ("fixing the maximum
-//! number of iterations per procedure in a frame-based approach", as the paper allows).
+//! Technique `irradiance`: Monte-Carlo volume rendering whose first scattering event takes its
+//! irradiance from a cache built while rendering (Khlebnikov et al. 2014,
+//! ../shared/papers/parallel-irradiance-caching.txt; its steps and how the paper's megakernel
+//! became frames of dispatches are in docs/architecture.md, "`irradiance`").
+//!
+//! - Each frame runs the paper's three procedures in its time fractions (§4.1, §6): rendering
+//!   16 × 8 blocks (optionally by "expected gain" priorities), entry creation (the 7-point
+//!   estimate, ellipsoidal zones along the extinction gradient, §4.2) and update (radius
+//!   reduction where entries disagree, §4.3); `rounds_owed` / `DispatchPlan` plan it.
+//! - Entries live in a multi-reference octree built on the CPU (`octree`, §4.4); object- or
+//!   screen-space locking keeps neighbouring misses from creating the same entry (§5).
 //!
 //! Beyond the paper:
 //! - the cached irradiance includes multiple scattering (its future work): entries' samples are
