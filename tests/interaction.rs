@@ -71,10 +71,14 @@ async fn an_orbit_shows_reduced_previews_then_the_still_and_keeps_the_gi_state()
     .unwrap();
     for technique in ["raymarch", "photon", "manylight", "irradiance"] {
         let mut client = Client::connect(&server.ws_url()).await.unwrap();
+        // manylight with one set of virtual lights: the orbit must not rebuild it (with a new
+        // set per iteration, the default, iterations past the first trace sets whatever the
+        // camera does; gpu_manylight checks that a camera move alone traces none).
         let welcome = client
             .hello_with(
                 json!({"type": "hello", "protocol": 1, "technique": technique,
-                "viewport": {"width": 48, "height": 48}}),
+                "viewport": {"width": 48, "height": 48},
+                "technique_options": {"manylight": {"iterations_per_set": 0}}}),
             )
             .await
             .unwrap();

@@ -211,6 +211,43 @@ fn new_light_sets_make_the_error_fall_with_iterations() {
     );
 }
 
+/// A camera move restarts the picture with the set of lights it holds: the first iteration of
+/// the new view (what a drag renders) traces no set; the next does.
+#[test]
+fn a_camera_move_renders_its_first_iteration_with_the_lights_it_has() {
+    let (_, volume) = sphere(32);
+    let engine = engine();
+    let s = sun_and_sky(3);
+    let config = ManylightConfig {
+        vls: 64,
+        ..ManylightConfig::default()
+    };
+    let mut technique = Manylight::new(engine, volume, &s, config).expect("manylight");
+    converge(&mut technique, &s);
+    assert_eq!(
+        technique.light_set(),
+        2,
+        "a new set for each iteration past the first"
+    );
+    let mut moved = s.clone();
+    moved.camera.eye = [1.5, 0.5, 2.0];
+    technique
+        .apply(engine, &moved, &voxlight_engine::Change::Camera)
+        .expect("apply");
+    while technique.iteration() < 1 {
+        technique
+            .step(engine, &moved, Duration::ZERO)
+            .expect("step");
+    }
+    assert_eq!(
+        technique.light_set(),
+        2,
+        "the first iteration waited for a set"
+    );
+    converge(&mut technique, &moved);
+    assert_eq!(technique.light_set(), 4);
+}
+
 #[test]
 fn a_tf_edit_answers_at_once_then_rebuilds_to_the_fresh_result() {
     let (_, volume) = sphere(32);
