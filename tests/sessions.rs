@@ -481,7 +481,9 @@ async fn technique_options_configure_the_session_and_reach_every_viewer() {
 
     let mut ada = Client::connect(&server.ws_url()).await.unwrap();
     let mut start = hello_with_technique(32, "Ada", "manylight");
-    start["technique_options"] = json!({"manylight": {"virtual_lights": 24, "face_res": 8}});
+    // One set of lights (the face_res edit below keeps it), paths of at most 4 lights.
+    start["technique_options"] = json!({"manylight": {"virtual_lights": 24, "face_res": 8,
+        "max_bounces": 4, "iterations_per_set": 0}});
     let welcome = ada.hello_with(start).await.unwrap();
     let ServerMessage::Welcome { state, .. } = &welcome else {
         panic!("expected welcome, got {welcome:?}");
