@@ -32,6 +32,9 @@ pub enum Bench {
     Manylight(ManylightArgs),
     /// `irradiance` against plain Monte Carlo at equal time (the paper's Table 2).
     Convergence(ConvergenceArgs),
+    /// `irradiance` across a camera orbit: the cache kept against a cleared one at equal time
+    /// (the paper's Fig. 10).
+    Orbit(OrbitArgs),
     /// A scripted drag against a server: input to frame, frame rate, the still.
     Interactive(InteractiveArgs),
     /// Time and peak host memory of loading each dataset.
@@ -268,6 +271,41 @@ pub struct ConvergenceArgs {
 }
 
 #[derive(Debug, Args)]
+pub struct OrbitArgs {
+    #[command(flatten)]
+    pub common: Common,
+    /// Image edge in pixels.
+    #[arg(long, default_value_t = 96)]
+    pub size: u32,
+    /// Largest volume edge after downsampling.
+    #[arg(long, default_value_t = 64)]
+    pub max_dim: u32,
+    /// Frames that build the cache from the first view (at plain MCVR's frame time there).
+    #[arg(long, default_value_t = 200)]
+    pub build_frames: u32,
+    /// Frames measured after the orbit, at equal time per frame.
+    #[arg(long, default_value_t = 100)]
+    pub frames: u32,
+    /// Samples per pixel of each turned view's reference.
+    #[arg(long, default_value_t = 512)]
+    pub reference_spp: u32,
+    /// Orbits in degrees about the camera's up axis through the volume's centre.
+    #[arg(long, value_delimiter = ',', default_value = "30,90")]
+    pub angles: Vec<f32>,
+    /// Light setups (1, 3, 4 lights as in `convergence`).
+    #[arg(long, value_delimiter = ',', default_value = "1")]
+    pub lights: Vec<u32>,
+    /// Datasets of ../shared/data.
+    #[arg(long, value_delimiter = ',', default_value = "bonsai,chest,engine")]
+    pub datasets: Vec<String>,
+    /// Most scattering events on a camera path (1 is the paper's single scattering).
+    #[arg(long, default_value_t = DEFAULT_BOUNCES)]
+    pub bounces: u32,
+    #[command(flatten)]
+    pub irradiance: IrradianceArgs,
+}
+
+#[derive(Debug, Args)]
 pub struct InteractiveArgs {
     #[command(flatten)]
     pub common: Common,
@@ -330,6 +368,7 @@ impl Bench {
             Bench::TfEdit(a) => &a.common,
             Bench::Manylight(a) => &a.common,
             Bench::Convergence(a) => &a.common,
+            Bench::Orbit(a) => &a.common,
             Bench::Interactive(a) => &a.common,
             Bench::Load(a) => &a.common,
         }
@@ -379,6 +418,19 @@ pub fn run(bench: &Bench) -> anyhow::Result<()> {
             dump: a.dump.as_deref(),
             config: a.irradiance.config(),
             ceiling: a.ceiling,
+        })?,
+        Bench::Orbit(a) => irradiance::orbit(&irradiance::OrbitBench {
+            data_dir: data.as_deref(),
+            size: a.size.max(8),
+            max_dim: a.max_dim.max(8),
+            build_frames: a.build_frames.max(1),
+            frames: a.frames.max(1),
+            reference_spp: a.reference_spp.max(2),
+            lights: &a.lights,
+            datasets: &a.datasets,
+            angles: &a.angles,
+            bounces: a.bounces.max(1),
+            config: a.irradiance.config(),
         })?,
         Bench::Interactive(a) => serde_json::to_value(run_interactive(a, data)?)?,
         Bench::Load(a) => {
@@ -520,6 +572,7 @@ mod tests {
             "manylight --vls 256 --json",
             "convergence --ceiling --max-dim 64 --json",
             "convergence --max-dim 64 --reference-spp 512 --cached-light all --view-event tracked",
+            "orbit --angles 0,30,90 --datasets chest --lights 1,3 --frames 50 --json",
             "interactive --url ws://127.0.0.1:8391/ws --dataset vti/bonsai.vti --techniques raymarch",
             "load --data /tmp/loadbench --datasets float256.nrrd,int256.nrrd",
         ] {
@@ -532,6 +585,8 @@ mod tests {
         assert!(parse("load --census").is_err());
         assert!(parse("tf-edit --technique manylight").is_err());
         assert!(parse("convergence --view-event sideways").is_err());
+        assert!(parse("orbit --ceiling").is_err());
+        assert!(parse("orbit --angles left").is_err());
         assert!(parse("nosuchbench").is_err());
     }
 
@@ -548,6 +603,16 @@ mod tests {
         assert_eq!((c.size, c.max_dim, c.frames), (96, 96, 200));
         assert_eq!(c.lights, vec![1, 3, 4]);
         assert_eq!(c.irradiance.config(), IrradianceConfig::default());
+        let Bench::Orbit(o) = parse("orbit").expect("orbit") else {
+            panic!("orbit")
+        };
+        assert_eq!(
+            (o.size, o.max_dim, o.build_frames, o.frames, o.reference_spp),
+            (96, 64, 200, 100, 512)
+        );
+        assert_eq!(o.angles, vec![30.0, 90.0]);
+        assert_eq!(o.lights, vec![1]);
+        assert_eq!(o.irradiance.config(), IrradianceConfig::default());
     }
 
     /// Every `--flag` that the docs and scripts write after `voxlight bench <name>` is a flag of

@@ -1,4 +1,5 @@
-//! `voxlight bench convergence` (the irradiance-caching paper's Table 2) and `voxlight bench
+//! `voxlight bench convergence` (the irradiance-caching paper's Table 2), `voxlight bench orbit`
+//! (the cache kept across a camera orbit against a cleared one, its Fig. 10) and `voxlight bench
 //! tf-edit --technique irradiance` (historygram invalidation against a cleared cache).
 //!
 //! Errors are measured against a long plain Monte-Carlo run (the `pathtrace` estimator) of the
@@ -90,6 +91,13 @@ impl Reference {
             .sum::<f64>()
             / n;
         (squared - self.noise).max(0.0).sqrt() / self.mean_luminance.max(1e-12)
+    }
+
+    /// The mean luminance of `picture` relative to the reference's, less 1 (> 0: too bright).
+    fn bias(&self, picture: &[[f32; 3]]) -> f64 {
+        let n = picture.len().max(1) as f64;
+        let mean = picture.iter().map(|&c| luminance(c)).sum::<f64>() / n;
+        mean / self.mean_luminance.max(1e-12) - 1.0
     }
 
     /// The reference's own relative noise (what `error` takes out).
@@ -375,16 +383,40 @@ fn base_scene(
     }
 }
 
+/// The datasets and light setups a benchmark runs over, and their image and volume sizes.
+struct Cases<'a> {
+    /// The benchmark's name (for the error without data).
+    bench: &'a str,
+    data_dir: Option<&'a Path>,
+    datasets: &'a [String],
+    lights: &'a [u32],
+    size: u32,
+    max_dim: u32,
+}
+
+impl<'a> ConvergenceBench<'a> {
+    fn cases(&self) -> Cases<'a> {
+        Cases {
+            bench: "convergence",
+            data_dir: self.data_dir,
+            datasets: self.datasets,
+            lights: self.lights,
+            size: self.size,
+            max_dim: self.max_dim,
+        }
+    }
+}
+
 /// Runs `case` for each dataset and light setup of `options`, with the dataset on the GPU and
 /// the case's scene.
 fn for_each_case(
-    options: &ConvergenceBench,
+    options: &Cases,
     engine: &Engine,
     mut case: impl FnMut(&str, u32, &Arc<GpuVolume>, &Scene) -> anyhow::Result<()>,
 ) -> anyhow::Result<()> {
     let data_dir = options
         .data_dir
-        .context("bench convergence needs ../shared/data (or --data)")?;
+        .with_context(|| format!("bench {} needs ../shared/data (or --data)", options.bench))?;
     for name in options.datasets {
         let volume = dataset(data_dir, name, options.max_dim)?;
         let gpu_volume = engine.upload_volume(&volume)?;
@@ -411,7 +443,8 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
     };
     let mut cases = Vec::new();
     let mut controls = Vec::new();
-    for_each_case(options, &engine, |name, lights, gpu_volume, scene| {
+    let over = options.cases();
+    for_each_case(&over, &engine, |name, lights, gpu_volume, scene| {
         warm_up(&engine, gpu_volume, scene)?;
         let started = Instant::now();
         let reference = reference(&engine, gpu_volume, scene, options.reference_spp, &config)?;
@@ -674,7 +707,8 @@ pub fn ceiling(options: &ConvergenceBench) -> anyhow::Result<serde_json::Value> 
         ..options.config
     };
     let mut cases = Vec::new();
-    for_each_case(options, &engine, |name, lights, gpu_volume, scene| {
+    let over = options.cases();
+    for_each_case(&over, &engine, |name, lights, gpu_volume, scene| {
         let environment = scene
             .lights
             .iter()
@@ -817,6 +851,310 @@ pub fn ceiling(options: &ConvergenceBench) -> anyhow::Result<serde_json::Value> 
     result["mean_ramp"] = json!(mean_ramp);
     result["cases"] = json!(cases);
     Ok(result)
+}
+
+/// Options of `bench orbit`.
+pub struct OrbitBench<'a> {
+    pub data_dir: Option<&'a Path>,
+    pub size: u32,
+    pub max_dim: u32,
+    /// Frames that build the cache from the first view, each at plain MCVR's frame time there.
+    pub build_frames: u32,
+    /// Frames measured after the orbit, at equal time per frame.
+    pub frames: u32,
+    /// Samples per pixel of each new view's reference.
+    pub reference_spp: u32,
+    pub lights: &'a [u32],
+    pub datasets: &'a [String],
+    /// Orbits, in degrees about the camera's up axis through the volume's centre.
+    pub angles: &'a [f32],
+    /// Most scattering events on a camera path.
+    pub bounces: u32,
+    /// The cache's configuration (the kept and the cleared cache alike).
+    pub config: IrradianceConfig,
+}
+
+/// `camera` turned by `degrees` about its up axis through its target (the volume's centre):
+/// Rodrigues' rotation of the eye.
+fn orbit_camera(camera: &Camera, degrees: f32) -> Camera {
+    let (s, c) = degrees.to_radians().sin_cos();
+    let up = voxlight_engine::camera::normalize(camera.up).unwrap_or([0.0, 0.0, 1.0]);
+    let v: [f32; 3] = std::array::from_fn(|i| camera.eye[i] - camera.target[i]);
+    let dot = v[0] * up[0] + v[1] * up[1] + v[2] * up[2];
+    let cross = [
+        up[1] * v[2] - up[2] * v[1],
+        up[2] * v[0] - up[0] * v[2],
+        up[0] * v[1] - up[1] * v[0],
+    ];
+    let eye = std::array::from_fn(|i| {
+        camera.target[i] + v[i] * c + cross[i] * s + up[i] * dot * (1.0 - c)
+    });
+    Camera { eye, ..*camera }
+}
+
+/// Frames of plain MCVR that time a frame at the first view (their median).
+const PROBE_FRAMES: u32 = 8;
+
+/// One run after the orbit, all at the new view.
+struct OrbitRun {
+    name: &'static str,
+    technique: Irradiance,
+    errors: Errors,
+    times: Vec<Duration>,
+}
+
+impl OrbitRun {
+    fn new(name: &'static str, technique: Irradiance) -> Self {
+        Self {
+            name,
+            technique,
+            errors: Errors::default(),
+            times: Vec::new(),
+        }
+    }
+
+    /// What the run left after its last frame, for the JSON and the summary line.
+    fn report(
+        &self,
+        engine: &Engine,
+        reference: &Reference,
+    ) -> anyhow::Result<(f64, serde_json::Value)> {
+        let errors = &self.errors.reference;
+        let at = |frame: usize| {
+            errors
+                .get(frame.min(errors.len().saturating_sub(1)))
+                .copied()
+        };
+        let (picture, _) = self.technique.read_estimate(engine)?;
+        let bias = reference.bias(&picture);
+        let stats = self.technique.cache_stats();
+        let seconds: f64 = self.times.iter().map(Duration::as_secs_f64).sum();
+        let mut value = json!({
+            "final_error": at(usize::MAX),
+            "error_at_frame_1": at(0),
+            "error_at_frame_10": at(9),
+            "mean_bias": bias,
+            "seconds": seconds,
+            "frame_ms": median(self.times.clone()).as_secs_f64() * 1e3,
+            "samples_per_pixel": self.technique.iteration(),
+            "errors": errors,
+        });
+        if self.technique.config().cache {
+            value["cache_entries"] = json!(stats.entries);
+            value["hit_rate"] = json!(stats.hit_rate);
+        }
+        Ok((bias, value))
+    }
+}
+
+/// `bench orbit`: the irradiance cache across camera moves (the paper's Fig. 10: object-space
+/// entries reused after an orbit). For each dataset and light setup a cache is built from the
+/// first view; then, for each orbit angle, against a long plain-MCVR reference of the turned
+/// view, four runs go on from the orbit, interleaved frame by frame at equal time per frame
+/// (each cache frame given the time plain MCVR's frame just before it took, as in
+/// `convergence`):
+/// - `kept`: a copy of the built cache, then a camera edit to the new view (`Change::Camera`,
+///   which keeps the entries and restarts the picture; the copy drops pending requests);
+/// - `cleared`: a fresh technique at the new view (an empty cache);
+/// - `plain`: plain MCVR (no cache, no priorities; its frames set the time);
+/// - `control`: plain MCVR with Eq. 12's priorities and no cache.
+///
+/// The error is `convergence`'s (relative RMS of the luminance against the reference, its own
+/// noise taken out); the bias is the mean luminance against the reference's, less 1.
+pub fn orbit(options: &OrbitBench) -> anyhow::Result<serde_json::Value> {
+    let engine = Engine::new()?;
+    let config = IrradianceConfig {
+        bounces: options.bounces,
+        ..options.config
+    };
+    let cases = Cases {
+        bench: "orbit",
+        data_dir: options.data_dir,
+        datasets: options.datasets,
+        lights: options.lights,
+        size: options.size,
+        max_dim: options.max_dim,
+    };
+    let mut rows = Vec::new();
+    for_each_case(&cases, &engine, |name, lights, gpu_volume, scene| {
+        warm_up(&engine, gpu_volume, scene)?;
+        // The cache is built at plain MCVR's frame time at the first view, as `convergence`
+        // runs it.
+        let mut probe = Irradiance::new(&engine, Arc::clone(gpu_volume), scene, plain(&config))?;
+        let mut probe_times = Vec::new();
+        for _ in 0..PROBE_FRAMES {
+            let started = Instant::now();
+            probe.frame(&engine, scene, true)?;
+            probe_times.push(started.elapsed());
+        }
+        drop(probe);
+        let build_frame = median(probe_times);
+        let mut builder = Irradiance::new(
+            &engine,
+            Arc::clone(gpu_volume),
+            scene,
+            IrradianceConfig {
+                frame_time: Some(build_frame),
+                ..config
+            },
+        )?;
+        let started = Instant::now();
+        for _ in 0..options.build_frames {
+            builder.frame(&engine, scene, true)?;
+        }
+        let build_s = started.elapsed().as_secs_f64();
+        let built = builder.cache_stats();
+        let snapshot = builder.snapshot(&engine)?;
+        drop(builder);
+        eprintln!(
+            "{name}, {lights} light(s): built {} entries in {} frames of {:.1} ms ({build_s:.1} s), \
+             hit rate {:.2} at the first view",
+            built.entries,
+            options.build_frames,
+            build_frame.as_secs_f64() * 1e3,
+            built.hit_rate,
+        );
+        for &angle in options.angles {
+            let turned = Scene {
+                camera: orbit_camera(&scene.camera, angle),
+                ..scene.clone()
+            };
+            let started = Instant::now();
+            let reference =
+                reference(&engine, gpu_volume, &turned, options.reference_spp, &config)?;
+            eprintln!(
+                "{name}, {lights} light(s), {angle}°: reference {} spp in {:.1} s (its own \
+                 relative noise {:.4})",
+                options.reference_spp,
+                started.elapsed().as_secs_f64(),
+                reference.relative_noise()
+            );
+            let timed = IrradianceConfig {
+                frame_time: Some(Duration::from_millis(1)),
+                ..config
+            };
+            let mut kept = Irradiance::new(&engine, Arc::clone(gpu_volume), scene, timed)?;
+            kept.restore(&engine, scene, &snapshot)?;
+            let entries_before = kept.cache_stats().entries;
+            kept.apply(&engine, &turned, &Change::Camera)?;
+            let entries_after = kept.cache_stats().entries;
+            let cleared = Irradiance::new(&engine, Arc::clone(gpu_volume), &turned, timed)?;
+            let control = Irradiance::new(
+                &engine,
+                Arc::clone(gpu_volume),
+                &turned,
+                IrradianceConfig {
+                    priorities: true,
+                    frame_time: timed.frame_time,
+                    ..plain(&config)
+                },
+            )?;
+            let mut plain_run = OrbitRun::new(
+                "plain",
+                Irradiance::new(&engine, Arc::clone(gpu_volume), &turned, plain(&config))?,
+            );
+            let mut runs = [
+                OrbitRun::new("kept", kept),
+                OrbitRun::new("cleared", cleared),
+                OrbitRun::new("control", control),
+            ];
+            for _ in 0..options.frames {
+                let (t, _) = timed_frame(
+                    &engine,
+                    &mut plain_run.technique,
+                    &turned,
+                    &reference,
+                    &mut plain_run.errors,
+                )?;
+                plain_run.times.push(t);
+                for run in &mut runs {
+                    run.technique.set_frame_time(Some(t));
+                    let (elapsed, _) = timed_frame(
+                        &engine,
+                        &mut run.technique,
+                        &turned,
+                        &reference,
+                        &mut run.errors,
+                    )?;
+                    run.times.push(elapsed);
+                }
+            }
+            let [kept, cleared, control] = &runs;
+            let final_error = |run: &OrbitRun| run.errors.reference.last().copied().unwrap_or(0.0);
+            let ratio = |run: &OrbitRun| final_error(run) / final_error(kept).max(1e-12);
+            let mean = |run: &OrbitRun| mean_ratio(&run.errors.reference, &kept.errors.reference);
+            let mut row = json!({
+                "dataset": name,
+                "lights": lights,
+                "angle_deg": angle,
+                "build_frames": options.build_frames,
+                "build_frame_ms": build_frame.as_secs_f64() * 1e3,
+                "build_s": build_s,
+                "built_entries": built.entries,
+                "built_hit_rate": built.hit_rate,
+                "entries_before_camera_edit": entries_before,
+                "entries_after_camera_edit": entries_after,
+                "reference_noise": reference.relative_noise(),
+                "final_error_ratio_cleared_over_kept": ratio(cleared),
+                "final_error_ratio_plain_over_kept": ratio(&plain_run),
+                "final_error_ratio_control_over_kept": ratio(control),
+                "mean_error_ratio_cleared_over_kept": mean(cleared),
+                "mean_error_ratio_plain_over_kept": mean(&plain_run),
+                "mean_error_ratio_control_over_kept": mean(control),
+            });
+            let mut line = Vec::new();
+            for run in [kept, cleared, &plain_run, control] {
+                let (bias, value) = run.report(&engine, &reference)?;
+                line.push(format!(
+                    "{} {:.4} (bias {:+.2}%, {:.1} s, {} spp)",
+                    run.name,
+                    final_error(run),
+                    100.0 * bias,
+                    run.times.iter().map(Duration::as_secs_f64).sum::<f64>(),
+                    run.technique.iteration(),
+                ));
+                row[run.name] = value;
+            }
+            eprintln!(
+                "{name}, {lights} light(s), {angle}°: entries {entries_before} → {entries_after} \
+                 across the camera edit; error after {} frames: {}; cleared/kept {:.2} (mean \
+                 over frames {:.2}), plain/kept {:.2} ({:.2}), control/kept {:.2} ({:.2})",
+                options.frames,
+                line.join(", "),
+                ratio(cleared),
+                mean(cleared),
+                ratio(&plain_run),
+                mean(&plain_run),
+                ratio(control),
+                mean(control),
+            );
+            rows.push(row);
+        }
+        Ok(())
+    })?;
+    let mean_of = |key: &str| mean_over(&rows, |r| r[key].as_f64());
+    Ok(json!({
+        "bench": "orbit",
+        "adapter": engine.gpu.adapter_name(),
+        "software_renderer": engine.gpu.is_software(),
+        "width": options.size,
+        "height": options.size,
+        "max_dim": options.max_dim,
+        "build_frames": options.build_frames,
+        "frames": options.frames,
+        "reference_spp": options.reference_spp,
+        "bounces": options.bounces,
+        "cached_light": cached_light_name(options.config.cached_light),
+        "view_event": view_event_name(options.config.view_event),
+        "view_picks": options.config.view_picks,
+        "max_radius_voxels": options.config.max_radius_voxels,
+        "priorities": options.config.priorities,
+        "mean_final_error_ratio_cleared_over_kept": mean_of("final_error_ratio_cleared_over_kept"),
+        "mean_final_error_ratio_plain_over_kept": mean_of("final_error_ratio_plain_over_kept"),
+        "mean_error_ratio_cleared_over_kept": mean_of("mean_error_ratio_cleared_over_kept"),
+        "mean_error_ratio_plain_over_kept": mean_of("mean_error_ratio_plain_over_kept"),
+        "cases": rows,
+    }))
 }
 
 /// Options of `bench tf-edit --technique irradiance`.
@@ -964,7 +1302,31 @@ pub fn tf_edit(options: &IrradianceTfEditBench) -> anyhow::Result<serde_json::Va
 
 #[cfg(test)]
 mod tests {
-    use super::ramp_ratio;
+    use super::{orbit_camera, ramp_ratio};
+    use voxlight_protocol::Camera;
+
+    #[test]
+    fn an_orbit_turns_the_eye_about_the_up_axis_through_the_target() {
+        let camera = Camera::default();
+        let near = |a: [f32; 3], b: [f32; 3]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-5);
+        // From −y, a quarter turn about +z (counter-clockwise seen from above) looks from +x.
+        let turned = orbit_camera(&camera, 90.0);
+        assert!(near(turned.eye, [2.4, 0.0, 0.0]), "{:?}", turned.eye);
+        assert_eq!((turned.target, turned.up), (camera.target, camera.up));
+        assert!(near(orbit_camera(&camera, 360.0).eye, camera.eye));
+        // About a target off the origin and a tilted eye: the distance and the height along up
+        // stay.
+        let camera = Camera {
+            eye: [1.0, -2.0, 0.5],
+            target: [1.0, 0.0, -0.5],
+            ..camera
+        };
+        let turned = orbit_camera(&camera, 30.0);
+        let offset = |c: &Camera| std::array::from_fn::<f32, 3, _>(|i| c.eye[i] - c.target[i]);
+        let length = |v: [f32; 3]| v.iter().map(|x| x * x).sum::<f32>().sqrt();
+        assert!((length(offset(&turned)) - length(offset(&camera))).abs() < 1e-5);
+        assert!((offset(&turned)[2] - offset(&camera)[2]).abs() < 1e-5);
+    }
 
     #[test]
     fn a_cache_complete_from_the_start_gives_the_ceiling_and_one_never_complete_gives_one() {
