@@ -153,8 +153,8 @@ fn edit(k: u32, start: &Camera, tf: &TransferFunction) -> ClientMessage {
     }
 }
 
-/// `camera` turned by `degrees` about its up axis through its target.
-fn orbit(camera: &Camera, degrees: f32) -> Camera {
+/// `camera` turned by `degrees` about its up axis through its target (also `bench orbit`'s).
+pub(crate) fn orbit(camera: &Camera, degrees: f32) -> Camera {
     let (s, c) = degrees.to_radians().sin_cos();
     let up = voxlight_engine::camera::normalize(camera.up).unwrap_or([0.0, 0.0, 1.0]);
     let v: [f32; 3] = std::array::from_fn(|i| camera.eye[i] - camera.target[i]);

@@ -21,6 +21,8 @@ use voxlight_engine::techniques::irradiance::{
 use voxlight_engine::{Change, Engine, GpuVolume, Scene, Technique};
 use voxlight_protocol::{Camera, Light, TransferFunction, Viewport};
 
+use crate::interactive::orbit as orbit_camera;
+
 /// Options of `bench convergence`.
 pub struct ConvergenceBench<'a> {
     pub data_dir: Option<&'a Path>,
@@ -872,24 +874,6 @@ pub struct OrbitBench<'a> {
     pub bounces: u32,
     /// The cache's configuration (the kept and the cleared cache alike).
     pub config: IrradianceConfig,
-}
-
-/// `camera` turned by `degrees` about its up axis through its target (the volume's centre):
-/// Rodrigues' rotation of the eye.
-fn orbit_camera(camera: &Camera, degrees: f32) -> Camera {
-    let (s, c) = degrees.to_radians().sin_cos();
-    let up = voxlight_engine::camera::normalize(camera.up).unwrap_or([0.0, 0.0, 1.0]);
-    let v: [f32; 3] = std::array::from_fn(|i| camera.eye[i] - camera.target[i]);
-    let dot = v[0] * up[0] + v[1] * up[1] + v[2] * up[2];
-    let cross = [
-        up[1] * v[2] - up[2] * v[1],
-        up[2] * v[0] - up[0] * v[2],
-        up[0] * v[1] - up[1] * v[0],
-    ];
-    let eye = std::array::from_fn(|i| {
-        camera.target[i] + v[i] * c + cross[i] * s + up[i] * dot * (1.0 - c)
-    });
-    Camera { eye, ..*camera }
 }
 
 /// Frames of plain MCVR that time a frame at the first view (their median).
