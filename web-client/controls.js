@@ -510,7 +510,7 @@ function overlayOptions(/** @type {any} */ edit) {
 const OPTION_CONTROLS = {
   photon: [
     { key: 'photons_per_pass', label: 'Photons/pass', title: 'Photon paths traced per progressive pass', values: [4096, 16384, 65536] },
-    { key: 'bounces', label: 'Bounces', title: 'Most scattering events per photon path (1: single scattering; Russian roulette ends most paths earlier)', values: [1, 2, 4, 8, 16, 32] },
+    { key: 'bounces', label: 'Bounces', title: 'Most scattering events per photon path (1: single scattering; Russian roulette ends most paths earlier)', values: [1, 2, 4, 8, 16, 64, 256, 1024] },
     { key: 'segments', label: 'Segments', title: 'View-ray segments per pixel (Vn)', values: [4, 8, 16] },
     { key: 'invalidation', label: 'TF-edit test', title: 'How a TF edit finds the view-ray segments to gather again', values: ['dirty_cells', 'spatial3x64', 'any_photon'] },
   ],

@@ -19,10 +19,10 @@ struct PhotonUniforms {
     // View-ray march step in world units.
     gather_step: f32,
     photons_per_pass: u32,
-    // Paths in the map (passes · photons_per_pass) and records (paths · bounces).
+    // Paths in the map (passes · photons_per_pass) and record slots (paths · path_slots).
     path_count: u32,
     record_count: u32,
-    // Scattering events stored per path (1 = single scattering).
+    // The most interactions a path may store (1 = single scattering).
     bounces: u32,
     // First path of this trace dispatch and how many.
     path_offset: u32,
@@ -70,8 +70,9 @@ struct PhotonUniforms {
     // 1: this full pass also counts its work per record slot into `scatter`, which a full pass
     // does not otherwise use (the work census of `bench tf-edit --census`): words
     // [0, record_capacity) the gather terms each record gave, words
-    // [record_capacity, 2 · record_capacity) the tracking steps of the flight that ended in
-    // each slot (with a collision or not). 0 in every other pass.
+    // [record_capacity, 2 · record_capacity) the tracking steps of the flight that stored
+    // each slot's record, words [2 · record_capacity, + path_count) those of each path's
+    // last flight, which stored none (it left the volume). 0 in every other pass.
     census: u32,
     // The first list slot of this gather dispatch: a round runs as parts, one submission each,
     // so that a long gather gives way between them (techniques/photon: GatherInProgress).
@@ -82,6 +83,17 @@ struct PhotonUniforms {
     // length) and its power is divided by it. survival >= 1: off.
     roulette_survival: f32,
     roulette_from: u32,
+    // Record slots (record_slot): each pass owns a block of photons_per_pass · path_slots
+    // slots, in it first inline_slots per path (a path's first interactions), then a pool of
+    // chunks of CHUNK_SLOTS slots that the paths of that pass take as they grow past their
+    // inline slots (chunks_per_pass of them). A path's chunks form a list, from
+    // PhotonPath::chunk through `chunks` (next pointers; from chunk_counts_at on, the chunks
+    // each pass has taken). So a path has any length up to `bounces`, while the memory is
+    // path_slots per path on average.
+    path_slots: u32,
+    inline_slots: u32,
+    chunks_per_pass: u32,
+    chunk_counts_at: u32,
     // Progressive radius reduction (Knaus & Zwicker 2011): the photons of pass i are gathered
     // with their own radius r_i <= radius (the grid's cell edge), r_i³ = r_0³ · Π_{k<i} (k + α)
     // / (k + 1). Entry i / 2 holds pass i's (r_i², (r_0 / r_i)³) in .xy (even i) or .zw (odd
@@ -102,9 +114,10 @@ fn pass_kernel(pass_index: u32) -> vec2<f32> {
     return e.zw;
 }
 
-// The pass that traced record `index`.
+// The pass that traced the record in slot `index` (inline or in a chunk: both lie in the
+// pass's block).
 fn record_pass(index: u32) -> u32 {
-    return index / (photon.bounces * photon.photons_per_pass);
+    return index / (photon.path_slots * photon.photons_per_pass);
 }
 
 // A stored photon interaction (a real collision): where, the direction it arrived from (travel
@@ -121,14 +134,15 @@ struct PhotonRecord {
 
 // Per path: stored interactions, the historygram of the whole path (including the flight
 // that left the volume) and that of its collisions' data values alone, so that a path the
-// edit affects is found by two tests (trace_mark).
+// edit affects is found by two tests (trace_mark), and the first chunk of slots past its
+// inline ones (CHUNK_NONE: none; photon/trace.wgsl, record_slot).
 struct PhotonPath {
     count: u32,
     end_lo: u32,
     end_hi: u32,
     collisions_lo: u32,
     collisions_hi: u32,
-    pad0: u32,
+    chunk: u32,
     pad1: u32,
     pad2: u32,
 }
@@ -266,6 +280,14 @@ const SPATIAL_CELLS: u32 = 2u;
 // the segment's slot + 2, set by gather_mark), then per slot SLOT_WORDS words (segment, samples marched, the change sum's lo
 // and hi words), then per slot scatter_samples sample weights (f32 bits, < 0: not gathered).
 @group(0) @binding(16) var<storage, read_write> scatter: array<atomic<u32>>;
+// The record chunks' list (PhotonUniforms::path_slots): per chunk (pass · chunks_per_pass +
+// its index in the pass) the next chunk of its path (CHUNK_NONE: the last), then from
+// chunk_counts_at on per pass the chunks taken (more than chunks_per_pass: a path found
+// none and was cut short; the host sees it).
+@group(0) @binding(17) var<storage, read_write> chunks: array<atomic<u32>>;
+
+const CHUNK_SLOTS: u32 = 4u;
+const CHUNK_NONE: u32 = 0xffffffffu;
 
 const SLOT_NONE: u32 = 0xffffffffu;
 const SLOT_WORDS: u32 = 8u;

@@ -3,7 +3,9 @@
 // uniform direction; environment: a uniform direction and such a disk), delta tracking against
 // a fixed, TF-independent majorant, a record at every real collision (power × albedo there),
 // Henyey-Greenstein scattering, at most `bounces` records. Every data value a tentative
-// collision reads is added to the path's historygram.
+// collision reads is added to the path's historygram. A path's first `inline_slots` records
+// have slots of their own; further ones go into chunks the path takes from its pass's pool as
+// it grows (record_slot), so a path's length is not bounded by a fixed number of slots.
 //
 // Randomness is keyed by (seed, path, interaction k): the flight to interaction k and the
 // scattering that starts it draw from rng_new(seed, path, k) only, and the state it starts
@@ -145,6 +147,81 @@ fn emit(rng: ptr<function, Rng>) -> Emission {
     return Emission(origin, dir, e.power);
 }
 
+fn empty_record() -> PhotonRecord {
+    return PhotonRecord(vec3<f32>(0.0), CELL_NONE, vec3<f32>(0.0), 0u, vec3<f32>(0.0), 0u);
+}
+
+fn pass_of(p: u32) -> u32 {
+    return p / photon.photons_per_pass;
+}
+
+// Path p's own slot for interaction k < inline_slots.
+fn inline_slot(p: u32, k: u32) -> u32 {
+    let pass_index = pass_of(p);
+    let block = pass_index * photon.photons_per_pass * photon.path_slots;
+    return block + (p - pass_index * photon.photons_per_pass) * photon.inline_slots + k;
+}
+
+// Slot j of chunk c (its index within p's pass) of p's pass's pool.
+fn chunk_slot(p: u32, c: u32, j: u32) -> u32 {
+    let block = pass_of(p) * photon.photons_per_pass * photon.path_slots;
+    return block + photon.photons_per_pass * photon.inline_slots + c * CHUNK_SLOTS + j;
+}
+
+// The word of chunk c's next pointer in `chunks`.
+fn chunk_word(p: u32, c: u32) -> u32 {
+    return pass_of(p) * photon.chunks_per_pass + c;
+}
+
+// The chunk that holds interaction k >= inline_slots of path p, whose list starts at `head`
+// (CHUNK_NONE where the list is shorter).
+fn chain_chunk(p: u32, head: u32, k: u32) -> u32 {
+    var c = head;
+    let hops = (k - photon.inline_slots) / CHUNK_SLOTS;
+    for (var i = 0u; i < hops && c != CHUNK_NONE; i++) {
+        c = atomicLoad(&chunks[chunk_word(p, c)]);
+    }
+    return c;
+}
+
+// The slot of interaction k of path p, one the path holds (k below its count).
+fn record_slot(p: u32, head: u32, k: u32) -> u32 {
+    if (k < photon.inline_slots) {
+        return inline_slot(p, k);
+    }
+    return chunk_slot(p, chain_chunk(p, head, k), (k - photon.inline_slots) % CHUNK_SLOTS);
+}
+
+// Takes the next free chunk of p's pass as the last of p's list (CHUNK_NONE: none is left).
+fn take_chunk(p: u32) -> u32 {
+    let c = atomicAdd(&chunks[photon.chunk_counts_at + pass_of(p)], 1u);
+    if (c >= photon.chunks_per_pass) {
+        return CHUNK_NONE;
+    }
+    atomicStore(&chunks[chunk_word(p, c)], CHUNK_NONE);
+    return c;
+}
+
+// MODE_FULL, before `main`: empties the chunk pools of the passes that paths [path_offset,
+// + dispatch_paths) belong to and sets their counts to none taken. A full trace takes its
+// chunks afresh, and a slot no path takes must hold no photon for the grid.
+@compute @workgroup_size(64)
+fn trace_clear(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let i = linear_index(gid, groups);
+    let pool = photon.photons_per_pass * (photon.path_slots - photon.inline_slots);
+    let passes = photon.dispatch_paths / photon.photons_per_pass;
+    if (i >= passes * pool) {
+        return;
+    }
+    let pass_index = photon.path_offset / photon.photons_per_pass + i / pool;
+    let local = i % pool;
+    let block = pass_index * photon.photons_per_pass * photon.path_slots;
+    records[block + photon.photons_per_pass * photon.inline_slots + local] = empty_record();
+    if (local == 0u) {
+        atomicStore(&chunks[photon.chunk_counts_at + pass_index], 0u);
+    }
+}
+
 // MODE_UPDATE: lists every path of the map whose historygram meets the query.
 @compute @workgroup_size(64)
 fn trace_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
@@ -187,7 +264,9 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         p = retrace_list[i];
     }
     let bounces = photon.bounces;
-    let base = p * bounces;
+    // The path's chunk list: a full trace takes chunks afresh; an update keeps the ones the
+    // path has (their slots past its end are empty) and takes more only where it grows.
+    var head = CHUNK_NONE;
 
     var start = -1;
     var old_count = 0u;
@@ -196,6 +275,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     if (photon.mode == MODE_UPDATE) {
         let path = paths[p];
         old_count = path.count;
+        head = path.chunk;
         // Start after the last interaction the edit did not move: the first moved one is the
         // first whose flight met the rejection query or whose collision's opacity fell. A
         // collision whose colour alone changed stays where it is (the tracking never reads
@@ -210,7 +290,8 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
             if (j >= i32(path.count)) {
                 break;
             }
-            let r = records[base + u32(j)];
+            let slot = record_slot(p, head, u32(j));
+            let r = records[slot];
             let bit = collision_bit(r);
             let opacity_fell_here = hist_hits_collision_query(bit.x, bit.y) && hist_hits_opacity_query(bit.x, bit.y);
             if (hist_hits_rejection_query(r.hist_lo, r.hist_hi) || opacity_fell_here) {
@@ -228,7 +309,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
                 power_before = emit(&rng).power;
             }
             let power = roulette_carry(power_before, u32(j)) * classify(data_at(r.position)).rgb;
-            store_record(base + u32(j), PhotonRecord(r.position, r.cell, power, r.hist_lo, r.direction, r.hist_hi));
+            store_record(slot, PhotonRecord(r.position, r.cell, power, r.hist_lo, r.direction, r.hist_hi));
             power_before = power;
             j += 1;
             // The trace goes on after a record only while its power is not all zero.
@@ -254,14 +335,21 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     var hist = vec2<u32>(0u);
     var k = 0u;
     if (start >= 0) {
-        let r = records[base + u32(start)];
+        let r = records[record_slot(p, head, u32(start))];
         position = r.position;
         direction = r.direction;
         power = r.power;
         hist = vec2<u32>(r.hist_lo, r.hist_hi);
         k = u32(start) + 1u;
     }
+    // The chunk that holds interaction k − 1 (past the inline slots).
+    var chunk = CHUNK_NONE;
+    if (k > photon.inline_slots) {
+        chunk = chain_chunk(p, head, k - 1u);
+    }
     var count = k;
+    // The tracking steps of the last flight, which stored no record (census).
+    var last_steps = 0u;
     loop {
         if (k >= bounces) {
             break;
@@ -314,25 +402,64 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
                 break;
             }
         }
-        if (photon.census != 0u) {
-            atomicStore(&scatter[photon.record_capacity + base + k], steps);
-        }
         if (!collided) {
+            last_steps = steps;
             break;
+        }
+        // Interaction k's slot: its own, or the next in the path's chunks, taking a chunk
+        // where its list ends.
+        var slot = 0u;
+        if (k < photon.inline_slots) {
+            slot = inline_slot(p, k);
+        } else {
+            let j = (k - photon.inline_slots) % CHUNK_SLOTS;
+            if (j == 0u) {
+                var next = head;
+                if (k > photon.inline_slots) {
+                    next = atomicLoad(&chunks[chunk_word(p, chunk)]);
+                }
+                if (next == CHUNK_NONE) {
+                    next = take_chunk(p);
+                    // None left: the path ends here, shorter than a trace with room would
+                    // make it; the host sees the pass's count past its chunks.
+                    if (next == CHUNK_NONE) {
+                        last_steps = steps;
+                        break;
+                    }
+                    if (k == photon.inline_slots) {
+                        head = next;
+                    } else {
+                        atomicStore(&chunks[chunk_word(p, chunk)], next);
+                    }
+                }
+                chunk = next;
+            }
+            slot = chunk_slot(p, chunk, j);
+        }
+        if (photon.census != 0u) {
+            atomicStore(&scatter[photon.record_capacity + slot], steps);
         }
         direction = dir;
         power *= albedo;
-        store_record(base + k, PhotonRecord(position, grid_index(grid_cell3(position)), power, hist.x, direction, hist.y));
+        store_record(slot, PhotonRecord(position, grid_index(grid_cell3(position)), power, hist.x, direction, hist.y));
         k += 1u;
         count = k;
     }
-    // Interactions past the end of the path hold no photon.
-    for (var r = count; r < bounces; r++) {
-        if (photon.mode == MODE_FULL || r < old_count) {
-            store_record(base + r, PhotonRecord(vec3<f32>(0.0), CELL_NONE, vec3<f32>(0.0), 0u, vec3<f32>(0.0), 0u));
+    if (photon.census != 0u) {
+        atomicStore(&scatter[2u * photon.record_capacity + p], last_steps);
+    }
+    // Interactions past the end of the path hold no photon: in a full trace its inline slots
+    // (trace_clear emptied the chunks), in an update the slots the old path filled.
+    if (photon.mode == MODE_FULL) {
+        for (var r = count; r < photon.inline_slots; r++) {
+            store_record(inline_slot(p, r), empty_record());
+        }
+    } else {
+        for (var r = count; r < old_count; r++) {
+            store_record(record_slot(p, head, r), empty_record());
         }
     }
-    paths[p] = PhotonPath(count, hist.x, hist.y, collisions.x, collisions.y, 0u, 0u, 0u);
+    paths[p] = PhotonPath(count, hist.x, hist.y, collisions.x, collisions.y, head, 0u, 0u);
 }
 
 // Whether interaction k (k >= 1: a scattering) plays Russian roulette first (PhotonUniforms).

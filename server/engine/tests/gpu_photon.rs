@@ -848,3 +848,71 @@ fn roulette_and_shrinking_radii_keep_updates_bit_exact() {
         );
     }
 }
+
+/// Paths longer than their own slots take chunks from their pass's pool (issue 25: no fixed
+/// cap on a path's length), and updates stay bit-exact although an updated path keeps its
+/// chunks and takes new ones in another order than a full recompute does: the state is read
+/// in path order, and the gather's sums do not depend on where a record lies. Roulette rarely
+/// ends a path here (survival 0.95), so many paths grow past their 4 own slots and some past 8.
+#[test]
+fn long_paths_take_chunks_and_keep_updates_bit_exact() {
+    let volume = cornell_volume(32);
+    let p = PhotonParams {
+        photons_per_pass: 2048,
+        max_passes: 2,
+        bounces: 256,
+        record_slots: 8,
+        roulette_survival: 0.95,
+        ..params(Invalidation::DirtyCells)
+    };
+    let mut s = cornell_scene(32, cornell_with(&[]));
+    let mut photon = converged(&volume, &s, p);
+    assert!(!photon.chunks_exhausted(engine()).expect("read"));
+    let longest = |photon: &Photon| {
+        let state = photon.read_state(engine()).expect("read");
+        state.paths.iter().map(|p| p.count).max().unwrap_or(0)
+    };
+    let before = longest(&photon);
+    assert!(before > 8, "no path took two chunks (longest {before})");
+    let edits = [
+        cornell_with(&[SPHERE_RED]),
+        // Paths lose the tall block and run further, then find it again.
+        cornell_with(&[SPHERE_RED, TALL_BLOCK_GONE]),
+        cornell_with(&[SPHERE_GREEN, TALL_BLOCK_HALF]),
+        cornell_with(&[SPHERE_GREEN]),
+    ];
+    for (i, tf) in edits.into_iter().enumerate() {
+        let what = format!("edit {i}");
+        let report = edit_equals_full(&mut photon, &volume, &mut s, tf, p, &what);
+        assert!(
+            report.paths_retraced + report.paths_recoloured < report.paths,
+            "edit {i} redid every path: {report:?}"
+        );
+    }
+}
+
+/// A pass whose paths need more chunks than its pool holds cuts the last ones short and says
+/// so; an update of such a map cannot be exact and is done as a full recompute.
+#[test]
+fn a_map_that_ran_out_of_chunks_says_so_and_updates_by_recomputing() {
+    let volume = cornell_volume(32);
+    let p = PhotonParams {
+        photons_per_pass: 1024,
+        max_passes: 1,
+        bounces: 32,
+        record_slots: 8,
+        // No roulette: every path runs until it leaves the box or reaches the cap.
+        roulette_survival: 1.0,
+        ..params(Invalidation::DirtyCells)
+    };
+    let mut s = cornell_scene(32, cornell_with(&[]));
+    s.target_iterations = 1;
+    let mut photon = converged(&volume, &s, p);
+    assert!(photon.chunks_exhausted(engine()).expect("read"));
+    let change = Change::tf(&s.tf, &cornell_with(&[SPHERE_RED]));
+    s.tf = cornell_with(&[SPHERE_RED]);
+    photon.apply(engine(), &s, &change).expect("apply");
+    let report = photon.last_update().expect("report");
+    assert_eq!(report.paths_retraced, report.paths, "{report:?}");
+    assert_eq!(report.segments_recomputed, report.segments, "{report:?}");
+}

@@ -5,11 +5,12 @@ use std::mem::{offset_of, size_of};
 
 use voxlight_engine::shaders;
 use voxlight_engine::techniques::photon::gpu::{
-    CHANGE_ADD, CHANGE_REPLACE, CHANGE_SUBTRACT, COUNTER_CHANGED, COUNTER_CHANGES, COUNTER_DELTA,
-    COUNTER_LIST, COUNTER_RECOLOURED, COUNTER_RETRACED, COUNTER_SCATTER, COUNTER_SCATTER_OVERFLOW,
-    COUNTER_SEGMENTS, COUNTER_SPATIAL, COUNTER_TOUCH, COUNTER_WORDS, GRID_CHANGES, GRID_RECORDS,
-    GatherState, MODE_FULL, MODE_UPDATE, PhotonChange, PhotonEmitter, PhotonPath, PhotonRecord,
-    PhotonUniforms, SLOT_WORDS, SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
+    CHANGE_ADD, CHANGE_REPLACE, CHANGE_SUBTRACT, CHUNK_NONE, CHUNK_SLOTS, COUNTER_CHANGED,
+    COUNTER_CHANGES, COUNTER_DELTA, COUNTER_LIST, COUNTER_RECOLOURED, COUNTER_RETRACED,
+    COUNTER_SCATTER, COUNTER_SCATTER_OVERFLOW, COUNTER_SEGMENTS, COUNTER_SPATIAL, COUNTER_TOUCH,
+    COUNTER_WORDS, GRID_CHANGES, GRID_RECORDS, GatherState, MODE_FULL, MODE_UPDATE, PhotonChange,
+    PhotonEmitter, PhotonPath, PhotonRecord, PhotonUniforms, SLOT_WORDS, SPATIAL_AXES,
+    SPATIAL_CELLS, SPATIAL_NONE, Segment,
 };
 
 fn assert_layout(module: &naga::Module, name: &str, size: usize, fields: &[(&str, usize)]) {
@@ -58,7 +59,8 @@ fn photon_structs_match_wgsl() {
                 emitter_count, spatial, round_input, round_budget, round_stride,
                 opacity_query_lo, opacity_query_hi, grid_pass, change_capacity,
                 record_capacity, collision_query_lo, collision_query_hi, scatter_capacity,
-                scatter_samples, census, round_first, roulette_survival, roulette_from, pass_kernels),
+                scatter_samples, census, round_first, roulette_survival, roulette_from,
+                path_slots, inline_slots, chunks_per_pass, chunk_counts_at, pass_kernels),
         );
         assert_layout(
             &module,
@@ -70,7 +72,7 @@ fn photon_structs_match_wgsl() {
             &module,
             "PhotonPath",
             size_of::<PhotonPath>(),
-            fields!(PhotonPath: count, end_lo, end_hi, collisions_lo, collisions_hi, pad0, pad1,
+            fields!(PhotonPath: count, end_lo, end_hi, collisions_lo, collisions_hi, chunk, pad1,
                 pad2),
         );
         assert_layout(
@@ -141,6 +143,8 @@ fn photon_constants_match_wgsl() {
         ("CHANGE_ADD", CHANGE_ADD),
         ("CHANGE_SUBTRACT", CHANGE_SUBTRACT),
         ("CHANGE_REPLACE", CHANGE_REPLACE),
+        ("CHUNK_SLOTS", CHUNK_SLOTS),
+        ("CHUNK_NONE", CHUNK_NONE),
         // The dirty-cell bits start right after the counters.
         ("COUNTER_DIRTY", COUNTER_WORDS as u32),
     ] {

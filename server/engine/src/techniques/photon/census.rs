@@ -1,6 +1,6 @@
 //! The work census of technique `photon` (beyond the paper): how much of a full recompute any
-//! bit-exact incremental update between two TFs must redo, counted per record slot by
-//! `Photon::census` and compared here.
+//! bit-exact incremental update between two TFs must redo, counted per record by
+//! `Photon::census` and compared here, path by path.
 //!
 //! The bound rests on two facts of the exact update (docs/architecture.md, `photon`):
 //! - A segment's radiance is a sum of 64-bit fixed-point terms, each truncated on its own,
@@ -17,30 +17,79 @@
 
 use crate::techniques::photon::gpu::PhotonRecord;
 
-/// A full recompute's work per record slot (`Photon::census`).
+/// A full recompute's work per record (`Photon::census`), the records in path order.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Census {
     /// Gather terms each record gave (lattice samples within the radius that take photons).
     pub terms: Vec<u32>,
-    /// Tracking steps (tentative collisions) of the flight that ended in each slot, with a
-    /// collision or by leaving the volume; 0 where the path had ended before.
+    /// Tracking steps (tentative collisions) of the flight that stored each record.
     pub steps: Vec<u32>,
     pub records: Vec<PhotonRecord>,
-    /// Record slots per path.
-    pub bounces: u32,
+    /// Each path's first record, then the end (one more than paths).
+    pub path_starts: Vec<usize>,
+    /// Per path, the tracking steps of its last flight, which stored no record (it left the
+    /// volume; 0 where the path ended otherwise).
+    pub end_steps: Vec<u32>,
 }
+
+/// Interaction `k` of one path in a census: its record (an empty one past the path's end),
+/// its terms and the steps of the flight that ended there (the last flight's at the end).
+struct Slot {
+    record: PhotonRecord,
+    terms: u32,
+    steps: u32,
+}
+
+impl Census {
+    fn paths(&self) -> usize {
+        self.path_starts.len().saturating_sub(1)
+    }
+
+    /// Records path `path` holds.
+    fn count(&self, path: usize) -> usize {
+        self.path_starts[path + 1] - self.path_starts[path]
+    }
+
+    fn slot(&self, path: usize, k: usize) -> Slot {
+        let count = self.count(path);
+        if k < count {
+            let i = self.path_starts[path] + k;
+            return Slot {
+                record: self.records[i],
+                terms: self.terms[i],
+                steps: self.steps[i],
+            };
+        }
+        Slot {
+            record: EMPTY,
+            terms: 0,
+            steps: if k == count { self.end_steps[path] } else { 0 },
+        }
+    }
+}
+
+/// A slot that holds no photon (`CELL_NONE`).
+const EMPTY: PhotonRecord = PhotonRecord {
+    position: [0.0; 3],
+    cell: u32::MAX,
+    power: [0.0; 3],
+    hist_lo: 0,
+    direction: [0.0; 3],
+    hist_hi: 0,
+};
 
 /// The least work of any bit-exact update from one TF's photon map to another's, next to the
 /// second TF's full recompute (`WorkBound::between`).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct WorkBound {
+    /// Records compared: per path the more of its two versions' records.
     pub records: u64,
-    /// Record slots whose contents differ.
+    /// Records that differ (or exist in one version only).
     pub records_changed: u64,
     /// Of those, records whose position and direction are the same (only the power differs).
     pub records_power_only: u64,
     pub paths: u64,
-    /// Paths with a record slot whose position, direction or existence changed.
+    /// Paths with a record whose position, direction or existence changed.
     pub paths_moved: u64,
     /// Terms of the new full gather, and those of the changed records' new versions (which
     /// every exact update forms).
@@ -64,42 +113,46 @@ fn same_place(a: &PhotonRecord, b: &PhotonRecord) -> bool {
 impl WorkBound {
     /// Compares the censuses of the same map under two TFs.
     pub fn between(old: &Census, new: &Census) -> WorkBound {
-        let n = new.records.len().min(old.records.len());
-        let bounces = new.bounces.max(1) as usize;
+        let paths = new.paths().min(old.paths());
         let mut bound = WorkBound {
-            records: n as u64,
-            paths: (n / bounces) as u64,
+            paths: paths as u64,
             terms: new.terms.iter().map(|&t| t as u64).sum(),
-            steps: new.steps.iter().map(|&s| s as u64).sum(),
+            steps: new
+                .steps
+                .iter()
+                .chain(&new.end_steps)
+                .map(|&s| s as u64)
+                .sum(),
             ..WorkBound::default()
         };
-        for r in 0..n {
-            let (a, b) = (&old.records[r], &new.records[r]);
-            if a == b {
-                continue;
+        for path in 0..paths {
+            let records = old.count(path).max(new.count(path));
+            bound.records += records as u64;
+            // The last flight ends past the last record: one slot more.
+            let slots = || (0..=records).map(|k| (k, old.slot(path, k), new.slot(path, k)));
+            let mut first_moved = None;
+            for (k, a, b) in slots() {
+                if a.record == b.record {
+                    continue;
+                }
+                bound.records_changed += 1;
+                bound.terms_changed += b.terms as u64;
+                if same_place(&a.record, &b.record) {
+                    bound.records_power_only += 1;
+                } else {
+                    bound.terms_moved_old += a.terms as u64;
+                    first_moved.get_or_insert(k);
+                }
             }
-            bound.records_changed += 1;
-            bound.terms_changed += new.terms[r] as u64;
-            if same_place(a, b) {
-                bound.records_power_only += 1;
-            } else {
-                bound.terms_moved_old += old.terms[r] as u64;
-            }
-        }
-        for path in 0..n / bounces {
-            let slots = path * bounces..(path + 1) * bounces;
-            let Some(first) = slots
-                .clone()
-                .find(|&s| !same_place(&old.records[s], &new.records[s]))
-            else {
+            let Some(first) = first_moved else {
                 continue;
             };
             bound.paths_moved += 1;
-            for s in first..slots.end {
-                let steps = new.steps[s] as u64;
+            for (k, a, b) in slots().skip(first) {
+                let steps = b.steps as u64;
                 bound.steps_retracked += steps;
-                bound.steps_resumed += if s == first {
-                    steps.saturating_sub(old.steps[s] as u64)
+                bound.steps_resumed += if k == first {
+                    steps.saturating_sub(a.steps as u64)
                 } else {
                     steps
                 };
@@ -147,15 +200,9 @@ mod tests {
         }
     }
 
-    fn empty() -> PhotonRecord {
-        PhotonRecord {
-            cell: u32::MAX,
-            ..record(0.0, 0.0)
-        }
-    }
-
-    /// Three paths of two slots: one unchanged, one whose second record only changed power,
-    /// one whose first record moved (and whose second vanished).
+    /// Three paths of two records: one unchanged, one whose second record only changed
+    /// power, one whose first record moved (and whose second vanished: its last flight, 1
+    /// step, left the volume).
     fn censuses() -> (Census, Census) {
         let old = Census {
             terms: vec![10, 20, 5, 7, 30, 40],
@@ -168,7 +215,8 @@ mod tests {
                 record(0.5, 1.0),
                 record(0.6, 0.5),
             ],
-            bounces: 2,
+            path_starts: vec![0, 2, 4, 6],
+            end_steps: vec![0; 3],
         };
         let mut new = old.clone();
         new.records[3] = record(0.4, 0.25);
@@ -176,9 +224,11 @@ mod tests {
         new.records[4] = record(0.55, 1.0);
         new.terms[4] = 12;
         new.steps[4] = 8;
-        new.records[5] = empty();
-        new.terms[5] = 0;
-        new.steps[5] = 1;
+        new.records.pop();
+        new.terms.pop();
+        new.steps.pop();
+        new.path_starts[3] = 5;
+        new.end_steps[2] = 1;
         (old, new)
     }
 

@@ -11,7 +11,7 @@ impl PhotonParams {
     pub fn validate_options(p: &PhotonOptions) -> Result<(), String> {
         in_range("photon.photons_per_pass", p.photons_per_pass, 1, 1 << 20)?;
         in_range("photon.passes", p.passes, 1, 256)?;
-        in_range("photon.bounces", p.bounces, 1, 64)?;
+        in_range("photon.bounces", p.bounces, 1, 1024)?;
         in_range("photon.radius", p.radius, 0.0, 0.25)?;
         in_range("photon.segments", p.segments, 1, 32)?;
         // Above 0: a zero α or survival would end every pass's radius or path at once.

@@ -49,6 +49,11 @@ pub struct PhotonUniforms {
     pub round_first: u32,
     pub roulette_survival: f32,
     pub roulette_from: u32,
+    /// The record slots' layout (`RecordLayout`).
+    pub path_slots: u32,
+    pub inline_slots: u32,
+    pub chunks_per_pass: u32,
+    pub chunk_counts_at: u32,
     /// Per pass (r_i², (r_0 / r_i)³), two passes per entry (`pass_kernels`).
     pub pass_kernels: [[f32; 4]; PASS_KERNEL_ENTRIES],
 }
@@ -77,7 +82,8 @@ pub struct PhotonPath {
     pub end_hi: u32,
     pub collisions_lo: u32,
     pub collisions_hi: u32,
-    pub pad0: u32,
+    /// The first chunk of its slots past the inline ones (`CHUNK_NONE`: none).
+    pub chunk: u32,
     pub pad1: u32,
     pub pad2: u32,
 }
@@ -174,19 +180,26 @@ pub const SPATIAL_CELLS: u32 = 2;
 /// Workgroup width of the 1D photon kernels.
 pub const WORKGROUP: u32 = 64;
 
-/// What bindings 0–16 hold (every pass of shaders/photon/ declares them all, in common.wgsl):
+/// What bindings 0–17 hold (every pass of shaders/photon/ declares them all, in common.wgsl):
 /// scene, volume, TF, `PhotonUniforms`, the emitters, then the technique's buffers.
-pub const BINDINGS: [Binding; 17] = {
+pub const BINDINGS: [Binding; 18] = {
     use Binding::*;
     [
         Uniform, Volume, Read, Uniform, Read, ReadWrite, ReadWrite, ReadWrite, ReadWrite,
         ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite,
+        ReadWrite,
     ]
 };
+
+/// Slots per record chunk (`CHUNK_SLOTS` in photon/common.wgsl).
+pub const CHUNK_SLOTS: u32 = 4;
+/// The end of a path's chunk list (`CHUNK_NONE`).
+pub const CHUNK_NONE: u32 = u32::MAX;
 
 pub struct PhotonPass {
     pub layout: Layout,
     pub trace_mark: wgpu::ComputePipeline,
+    pub trace_clear: wgpu::ComputePipeline,
     pub trace: wgpu::ComputePipeline,
     pub grid_clear: wgpu::ComputePipeline,
     pub grid_count: wgpu::ComputePipeline,
@@ -221,6 +234,7 @@ pub struct PhotonBindings<'a> {
     pub scatter: &'a wgpu::Buffer,
     pub accum: &'a wgpu::Buffer,
     pub counters: &'a wgpu::Buffer,
+    pub chunks: &'a wgpu::Buffer,
 }
 
 impl PhotonPass {
@@ -235,6 +249,7 @@ impl PhotonPass {
         };
         Self {
             trace_mark: pipeline("photon trace mark", &trace, "trace_mark"),
+            trace_clear: pipeline("photon trace clear", &trace, "trace_clear"),
             trace: pipeline("photon trace", &trace, "main"),
             grid_clear: pipeline("photon grid clear", &grid, "grid_clear"),
             grid_count: pipeline("photon grid count", &grid, "grid_count"),
@@ -271,6 +286,7 @@ impl PhotonPass {
             buffer(14, b.retrace_list),
             buffer(15, b.changes),
             buffer(16, b.scatter),
+            buffer(17, b.chunks),
         ];
         self.layout.bind_group(gpu, "photon", &entries)
     }

@@ -25,6 +25,7 @@
 pub mod census;
 mod config;
 pub mod gpu;
+pub mod slots;
 
 use std::cell::Cell;
 use std::sync::Arc;
@@ -48,6 +49,7 @@ use crate::tf::{
 };
 use crate::{Change, Engine, EngineError, GpuVolume, Scene};
 pub use census::{Census, WorkBound};
+pub use slots::RecordLayout;
 
 /// Parameters of the photon map (the paper's Pn, Sn, Vn and the gather radius).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -58,8 +60,15 @@ pub struct PhotonParams {
     pub max_passes: u32,
     /// Scattering events stored per path (Sn), the cap on a path's length: 1 = single
     /// scattering; the paper's 2 truncates multiple scattering (−10% on the Mitsuba blob scene,
-    /// docs/validation.md). With Russian roulette most paths end well before it.
+    /// docs/validation.md). With Russian roulette most paths end well before it; the default
+    /// is high enough that the cap cuts no energy that shows (−4% at 16 on the albedo-0.99
+    /// scene), since a path's records need not have fixed slots (`record_slots`).
     pub bounces: u32,
+    /// Record slots per path on average (the map's memory): where `bounces` is larger, a path
+    /// has `slots::INLINE_SLOTS` of its own and takes chunks from its pass's shared pool as it
+    /// grows (`RecordLayout`). A pass whose paths need more than the pool holds cuts the last
+    /// ones short; an update that would is done as a full recompute instead.
+    pub record_slots: u32,
     /// Russian roulette: a path goes on past interaction `roulette_from` − 1 with this
     /// probability, its power divided by it (>= 1: off, every path runs to the cap or out of
     /// the volume). A constant rather than the albedo, so that a path's length does not depend
@@ -141,7 +150,8 @@ impl Default for PhotonParams {
         Self {
             photons_per_pass: 16384,
             max_passes: 8,
-            bounces: 16,
+            bounces: 256,
+            record_slots: 16,
             roulette_survival: 0.85,
             roulette_from: 2,
             radius_alpha: 2.0 / 3.0,
@@ -481,15 +491,21 @@ impl UpdateReport {
     }
 }
 
-/// The GPU state read back, for comparisons.
+/// The GPU state read back, for comparisons. The map is in path order: which slots a path's
+/// records lie in depends on the order its pass's paths took chunks (`slots`), which no
+/// result depends on.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PhotonState {
+    /// Every path's records in order, path after path (the slots past a path's end hold
+    /// none).
     pub records: Vec<PhotonRecord>,
+    /// The paths, with `chunk` zeroed.
     pub paths: Vec<PhotonPath>,
     pub segments: Vec<Segment>,
     /// Per pixel: radiance rgb, w = 1.
     pub hdr: Vec<[f32; 4]>,
-    /// The hash grid: cell starts (and cursors), then the record indices sorted by cell.
+    /// The hash grid's cell starts, then its records sorted by cell, as indices into
+    /// `records` (`u32::MAX`: a slot that holds no path's record).
     pub grid_cells: Vec<u32>,
     pub grid_sorted: Vec<u32>,
 }
@@ -498,7 +514,9 @@ pub struct PhotonState {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PhotonBudget {
     pub paths: u64,
+    /// Record slots (`layout`: paths · path_slots).
     pub records: u64,
+    pub layout: RecordLayout,
     pub cells: u64,
     pub grid_dims: [u32; 3],
     pub radius: f32,
@@ -525,6 +543,8 @@ pub struct PhotonBudget {
     pub accum_bytes: u64,
     /// Counters plus one dirty bit per grid cell.
     pub counter_bytes: u64,
+    /// The chunks' next pointers and per pass the chunks taken.
+    pub chunk_bytes: u64,
     pub total: u64,
 }
 
@@ -554,10 +574,22 @@ impl PhotonBudget {
         max_passes: u32,
     ) -> Result<Self, EngineError> {
         let invalid = |m: String| Err(EngineError::InvalidScene(m));
-        if params.photons_per_pass == 0 || params.bounces == 0 || params.segments == 0 {
+        if params.photons_per_pass == 0
+            || params.bounces == 0
+            || params.record_slots == 0
+            || params.segments == 0
+        {
             return invalid(
-                "photon: photons_per_pass, bounces and segments must be positive".into(),
+                "photon: photons_per_pass, bounces, record_slots and segments must be positive"
+                    .into(),
             );
+        }
+        let pool_least = slots::INLINE_SLOTS + gpu::CHUNK_SLOTS;
+        if params.bounces > params.record_slots && params.record_slots < pool_least {
+            return invalid(format!(
+                "photon: record_slots must be at least {pool_least} where bounces ({}) exceeds it",
+                params.bounces
+            ));
         }
         if !(params.gather_step_voxels.is_finite() && params.gather_step_voxels > 0.0) {
             return invalid("photon: gather_step_voxels must be positive".into());
@@ -584,8 +616,12 @@ impl PhotonBudget {
                 grid_dims[0], grid_dims[1], grid_dims[2]
             ));
         }
-        let paths = params.photons_per_pass as u64 * max_passes.max(1) as u64;
-        let records = paths * params.bounces as u64;
+        let passes = max_passes.max(1) as u64;
+        let paths = params.photons_per_pass as u64 * passes;
+        let layout =
+            RecordLayout::new(params.photons_per_pass, params.bounces, params.record_slots);
+        let records = paths * layout.path_slots as u64;
+        let chunk_bytes = passes * (layout.chunks_per_pass as u64 + 1) * 4;
         let pixels = width as u64 * height as u64;
         let record_bytes = records * size_of::<PhotonRecord>() as u64;
         let path_bytes = paths * size_of::<PhotonPath>() as u64;
@@ -629,6 +665,7 @@ impl PhotonBudget {
             + size_of::<PhotonUniforms>()
             + 8 * size_of::<PhotonEmitter>()) as u64;
         let total = counter_bytes
+            + chunk_bytes
             + record_bytes
             + path_bytes
             + grid_cell_bytes
@@ -644,6 +681,7 @@ impl PhotonBudget {
         Ok(Self {
             paths,
             records,
+            layout,
             cells,
             grid_dims,
             radius,
@@ -662,6 +700,7 @@ impl PhotonBudget {
             scatter_bytes,
             accum_bytes,
             counter_bytes,
+            chunk_bytes,
             total,
         })
     }
@@ -685,6 +724,7 @@ impl PhotonBudget {
             self.scatter_bytes,
             self.accum_bytes,
             self.counter_bytes,
+            self.chunk_bytes,
         ]
         .into_iter()
         .max()
@@ -726,6 +766,8 @@ pub struct Photon {
     segments: wgpu::Buffer,
     accum: wgpu::Buffer,
     counters: wgpu::Buffer,
+    /// The record chunks' lists (`slots`).
+    chunks: wgpu::Buffer,
     /// The delta scatter's state; a census borrows it (a full pass does not use it).
     scatter: wgpu::Buffer,
     bind_group: wgpu::BindGroup,
@@ -757,6 +799,8 @@ pub struct Photon {
     gather_rate: Option<f64>,
     /// Slots per part set by `fix_gather_part` instead of the measured rate.
     fixed_part: Option<u32>,
+    /// Whether a pass has run out of record chunks (logged once).
+    warned_chunks: bool,
 }
 
 impl Photon {
@@ -833,6 +877,11 @@ impl Photon {
             budget.counter_bytes,
             U::STORAGE | U::COPY_SRC,
         );
+        let chunks = buffer(
+            "photon chunks",
+            budget.chunk_bytes,
+            U::STORAGE | U::COPY_SRC,
+        );
         let bind_group = engine.photon.bind_group(
             &engine.gpu,
             &PhotonBindings {
@@ -853,6 +902,7 @@ impl Photon {
                 scatter: &scatter,
                 accum: &accum,
                 counters: &counters,
+                chunks: &chunks,
             },
         );
         let mut technique = Self {
@@ -870,6 +920,7 @@ impl Photon {
             segments,
             accum,
             counters,
+            chunks,
             scatter,
             bind_group,
             emitter_count: 0,
@@ -888,6 +939,7 @@ impl Photon {
             shown: 0,
             gather_rate: None,
             fixed_part: None,
+            warned_chunks: false,
         };
         technique.write_tf(engine, scene);
         technique.write_emitters(engine, scene);
@@ -999,7 +1051,7 @@ impl Photon {
             gather_step: 2.0 * default_step(&self.volume) * self.params.gather_step_voxels,
             photons_per_pass: self.params.photons_per_pass,
             path_count,
-            record_count: path_count * self.params.bounces,
+            record_count: path_count * self.budget.layout.path_slots,
             bounces: self.params.bounces,
             path_offset: trace_paths.start,
             dispatch_paths: trace_paths.len() as u32,
@@ -1025,6 +1077,10 @@ impl Photon {
             round_first: round.first,
             roulette_survival: self.params.roulette_survival,
             roulette_from: self.params.roulette_from,
+            path_slots: self.budget.layout.path_slots,
+            inline_slots: self.budget.layout.inline_slots,
+            chunks_per_pass: self.budget.layout.chunks_per_pass,
+            chunk_counts_at: self.capacity * self.budget.layout.chunks_per_pass,
             pass_kernels: pass_kernels(r, self.params.radius_alpha),
         };
         engine
@@ -1082,9 +1138,9 @@ impl Photon {
             .write_buffer(&self.counters, offset, bytemuck::bytes_of(&value));
     }
 
-    /// Records in the map (`bounces` slots per path, filled or not).
+    /// Record slots in the map (`path_slots` per path, filled or not).
     fn record_count(&self) -> u32 {
-        self.passes * self.params.photons_per_pass * self.params.bounces
+        self.passes * self.params.photons_per_pass * self.budget.layout.path_slots
     }
 
     /// Traces paths [offset, offset + count) (MODE_FULL) or retraces the first `count` paths
@@ -1108,7 +1164,38 @@ impl Photon {
             ..Dispatch::default()
         };
         self.write_uniforms(engine, scene, query, dispatch);
-        self.submit_linear(engine, "photon trace", &engine.photon.trace, count);
+        let mut encoder = Self::encoder(engine, "photon trace");
+        let pool = self.budget.layout.pool_slots();
+        if mode == MODE_FULL && pool > 0 {
+            let clear = &engine.photon.trace_clear;
+            let slots = count / self.params.photons_per_pass * pool;
+            dispatch_linear(
+                &mut encoder,
+                "photon trace clear",
+                clear,
+                &self.bind_group,
+                slots,
+            );
+        }
+        let trace = &engine.photon.trace;
+        dispatch_linear(&mut encoder, "photon trace", trace, &self.bind_group, count);
+        engine.gpu.queue.submit([encoder.finish()]);
+    }
+
+    /// Whether a pass's paths needed more chunks than its pool holds since its last full trace
+    /// (blocks on the GPU): some were cut short, which a full trace with room would not do.
+    pub fn chunks_exhausted(&self, engine: &Engine) -> Result<bool, EngineError> {
+        let layout = &self.budget.layout;
+        if layout.chunks_per_pass == 0 || self.passes == 0 {
+            return Ok(false);
+        }
+        let at = self.capacity as u64 * layout.chunks_per_pass as u64 * 4;
+        let bytes = engine
+            .gpu
+            .read_buffer_range(&self.chunks, at, self.passes as u64 * 4)?;
+        Ok(bytes
+            .chunks_exact(4)
+            .any(|w| bytemuck::pod_read_unaligned::<u32>(w) > layout.chunks_per_pass))
     }
 
     /// Carries a gather under way to its end (composite included), at once. Does not wait.
@@ -1371,7 +1458,18 @@ impl Photon {
         self.write_scene(engine, scene)?;
         self.trace(engine, scene, MODE_FULL, offset, p, Query::default());
         self.photons_traced += p as u64;
-        self.begin_gather(engine, scene, MODE_FULL, Query::default())
+        self.begin_gather(engine, scene, MODE_FULL, Query::default())?;
+        // begin_gather has waited for the trace; the pass's chunk count is a word.
+        if !self.warned_chunks && self.chunks_exhausted(engine)? {
+            self.warned_chunks = true;
+            tracing::warn!(
+                "photon: pass {} needed more record chunks than its pool holds (record_slots {}); \
+                 some paths were cut short and every TF edit recomputes the map",
+                self.passes,
+                self.params.record_slots
+            );
+        }
+        Ok(())
     }
 
     /// Gathers the next part of the gather under way, sized to `GATHER_PART_TIME` by the last
@@ -1450,12 +1548,12 @@ impl Photon {
         Ok((trace, rest))
     }
 
-    /// A full recompute with `scene` that also counts its work per record slot: the gather
-    /// terms each record gave and the tracking steps of the flight that ended in each slot
-    /// (benchmarks: `WorkBound::between` two censuses bounds what an exact update between
-    /// their TFs can save). The state afterwards is that of `recompute`. It borrows the delta
-    /// scatter's buffer (two words per record slot), which a full pass does not use, and
-    /// leaves it cleared.
+    /// A full recompute with `scene` that also counts its work per record: the gather terms
+    /// each record gave and the tracking steps of the flight that stored it, and per path its
+    /// last flight's (benchmarks: `WorkBound::between` two censuses bounds what an exact
+    /// update between their TFs can save). The state afterwards is that of `recompute`. It
+    /// borrows the delta scatter's buffer (two words per record slot and one per path), which
+    /// a full pass does not use, and leaves it cleared.
     pub fn census(
         &mut self,
         engine: &Engine,
@@ -1463,7 +1561,8 @@ impl Photon {
         passes: u32,
     ) -> Result<Census, EngineError> {
         let slots = self.budget.records;
-        let bytes = 8 * slots;
+        // Terms and steps per slot, then the last flight's steps per path.
+        let bytes = 8 * slots + 4 * self.budget.paths;
         if self.budget.scatter_bytes < bytes {
             return Err(EngineError::InvalidScene(format!(
                 "photon census: needs {bytes} bytes of the delta scatter's buffer, which has {} \
@@ -1486,14 +1585,18 @@ impl Photon {
         // Between updates the scatter's per-segment words read SEGMENT_UNTOUCHED (0); a
         // leftover count of 1 would pass for a mark (more work for the next update, same bits).
         clear(engine, &self.scatter);
-        let state = self.read_state(engine)?;
-        let n = state.records.len();
+        let (map, paths) = self.read_map(engine)?;
         let slots = slots as usize;
+        let per_record = |offset: usize| -> Vec<u32> {
+            let slot_words = map.canonical.slots.iter();
+            slot_words.map(|&s| words[offset + s as usize]).collect()
+        };
         Ok(Census {
-            terms: words[..n].to_vec(),
-            steps: words[slots..slots + n].to_vec(),
-            records: state.records,
-            bounces: self.params.bounces,
+            terms: per_record(0),
+            steps: per_record(slots),
+            records: map.records,
+            path_starts: map.canonical.path_starts,
+            end_steps: words[2 * slots..2 * slots + paths.len()].to_vec(),
         })
     }
 
@@ -1539,18 +1642,7 @@ impl Photon {
         if query.any == u64::MAX {
             // Every bin changed: every path would be retraced from its start and most segments
             // gathered again; the full recompute is that work without the checks.
-            self.recompute(engine, scene, self.passes)?;
-            let report = UpdateReport {
-                paths: paths as u64,
-                paths_retraced: paths as u64,
-                records_changed: paths as u64 * self.params.bounces as u64,
-                segments,
-                segments_recomputed: segments,
-                spatial: [u64::MAX; 3],
-                ..UpdateReport::default()
-            };
-            self.last_update = Some(report);
-            return Ok(report);
+            return self.update_by_recompute(engine, scene);
         }
         engine.gpu.queue.write_buffer(
             &self.counters,
@@ -1560,6 +1652,12 @@ impl Photon {
         self.write_scene(engine, scene)?;
         let listed = self.list_retraced(engine, scene, paths, query)?;
         self.trace(engine, scene, MODE_UPDATE, 0, listed, query);
+        if self.chunks_exhausted(engine)? {
+            // A retraced path grew past what its pass's pool had left and was cut short, which
+            // a full recompute (taking every chunk afresh) would not do.
+            tracing::debug!("photon: an update ran out of record chunks; recomputing the map");
+            return self.update_by_recompute(engine, scene);
+        }
         if regather {
             let words = self.counter_words(engine)?;
             self.begin_gather(engine, scene, MODE_FULL, Query::default())?;
@@ -1592,6 +1690,28 @@ impl Photon {
         }))
     }
 
+    /// An update done as a full recompute (every path retraced, every segment gathered).
+    fn update_by_recompute(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+    ) -> Result<UpdateReport, EngineError> {
+        self.recompute(engine, scene, self.passes)?;
+        let paths = (self.passes * self.params.photons_per_pass) as u64;
+        let segments = self.width as u64 * self.height as u64 * self.params.segments as u64;
+        let report = UpdateReport {
+            paths,
+            paths_retraced: paths,
+            records_changed: self.record_count() as u64,
+            segments,
+            segments_recomputed: segments,
+            spatial: [u64::MAX; 3],
+            ..UpdateReport::default()
+        };
+        self.last_update = Some(report);
+        Ok(report)
+    }
+
     /// Keeps `report` as the last update's and counts its retraced photons.
     fn record_update(&mut self, report: UpdateReport) -> UpdateReport {
         self.photons_traced += report.paths_retraced;
@@ -1599,55 +1719,93 @@ impl Photon {
         report
     }
 
-    /// Reads back the photon map, the segments and the picture.
+    /// Reads back the photon map, the segments and the picture, the map in path order
+    /// (`PhotonState`).
     pub fn read_state(&self, engine: &Engine) -> Result<PhotonState, EngineError> {
         self.catch_up_records_grid(engine);
-        let records = engine.gpu.read_buffer(&self.records)?;
-        let paths = engine.gpu.read_buffer(&self.paths)?;
+        let cast = |what: &str| EngineError::Gpu(format!("photon {what} readback has an odd size"));
+        let words = |buffer: &wgpu::Buffer, what: &str| -> Result<Vec<u32>, EngineError> {
+            let bytes = engine.gpu.read_buffer(buffer)?;
+            Ok(bytemuck::try_cast_slice::<u8, u32>(&bytes)
+                .map_err(|_| cast(what))?
+                .to_vec())
+        };
+        let (map, paths) = self.read_map(engine)?;
         let segments = engine.gpu.read_buffer(&self.segments)?;
         let hdr = engine.gpu.read_buffer(&self.accum)?;
-        let grid_cells = engine.gpu.read_buffer(&self.grid_cells)?;
-        let grid_sorted = engine.gpu.read_buffer(&self.grid_sorted)?;
-        let cast = |what: &str| EngineError::Gpu(format!("photon {what} readback has an odd size"));
-        let n_records = (self.passes * self.params.photons_per_pass * self.params.bounces) as usize;
-        let n_paths = (self.passes * self.params.photons_per_pass) as usize;
+        let cells = words(&self.grid_cells, "grid")?;
+        let grid_sorted = words(&self.grid_sorted, "grid")?;
         let pixels = (self.width * self.height) as usize;
+        let n_cells = self.budget.cells as usize;
+        let slots = self.record_count() as usize;
+        let total = (cells[n_cells] as usize).min(slots);
+        // The grid's slots as path-order indices; the order within a cell is the atomics'
+        // (the sums do not depend on it), so each cell's in index order, that equal grids
+        // compare equal.
+        let mut sorted: Vec<u32> = grid_sorted[..total]
+            .iter()
+            .map(|&slot| {
+                map.canonical
+                    .index_of
+                    .get(slot as usize)
+                    .copied()
+                    .unwrap_or(u32::MAX)
+            })
+            .collect();
+        for c in 0..n_cells {
+            let (first, end) = (cells[c] as usize, (cells[c + 1] as usize).min(total));
+            if first < end {
+                sorted[first..end].sort_unstable();
+            }
+        }
         Ok(PhotonState {
-            records: bytemuck::try_cast_slice::<u8, PhotonRecord>(&records)
-                .map_err(|_| cast("records"))?[..n_records]
-                .to_vec(),
-            paths: bytemuck::try_cast_slice::<u8, PhotonPath>(&paths).map_err(|_| cast("paths"))?
-                [..n_paths]
-                .to_vec(),
+            records: map.records,
+            paths: paths
+                .into_iter()
+                .map(|p| PhotonPath { chunk: 0, ..p })
+                .collect(),
             segments: bytemuck::try_cast_slice::<u8, Segment>(&segments)
                 .map_err(|_| cast("segments"))?[..pixels * self.params.segments as usize]
                 .to_vec(),
             hdr: bytemuck::try_cast_slice::<u8, [f32; 4]>(&hdr).map_err(|_| cast("image"))?
                 [..pixels]
                 .to_vec(),
-            grid_cells: bytemuck::try_cast_slice::<u8, u32>(&grid_cells)
-                .map_err(|_| cast("grid"))?[..self.budget.cells as usize + 1]
-                .to_vec(),
-            // The order within a cell is the atomics' (the sums do not depend on it): each
-            // cell's records in index order, so that equal grids compare equal.
-            grid_sorted: {
-                let cells: &[u32] =
-                    bytemuck::try_cast_slice(&grid_cells).map_err(|_| cast("grid"))?;
-                let n_cells = self.budget.cells as usize;
-                let total = (cells[n_cells] as usize).min(n_records);
-                let mut sorted = bytemuck::try_cast_slice::<u8, u32>(&grid_sorted)
-                    .map_err(|_| cast("grid"))?[..total]
-                    .to_vec();
-                for c in 0..n_cells {
-                    let (first, end) = (cells[c] as usize, (cells[c + 1] as usize).min(total));
-                    if first < end {
-                        sorted[first..end].sort_unstable();
-                    }
-                }
-                sorted
-            },
+            grid_cells: cells[..n_cells + 1].to_vec(),
+            grid_sorted: sorted,
         })
     }
+
+    /// The map's records in path order (and the paths as the GPU holds them).
+    fn read_map(&self, engine: &Engine) -> Result<(PathOrder, Vec<PhotonPath>), EngineError> {
+        let odd = |what: &str| EngineError::Gpu(format!("photon {what} readback has an odd size"));
+        let records = engine.gpu.read_buffer(&self.records)?;
+        let records =
+            bytemuck::try_cast_slice::<u8, PhotonRecord>(&records).map_err(|_| odd("records"))?;
+        let paths = engine.gpu.read_buffer(&self.paths)?;
+        let n_paths = (self.passes * self.params.photons_per_pass) as usize;
+        let paths = bytemuck::try_cast_slice::<u8, PhotonPath>(&paths).map_err(|_| odd("paths"))?
+            [..n_paths]
+            .to_vec();
+        let chunks = engine.gpu.read_buffer(&self.chunks)?;
+        let next: &[u32] = bytemuck::try_cast_slice(&chunks).map_err(|_| odd("chunks"))?;
+        let slots = self.record_count() as usize;
+        let canonical =
+            slots::canonical(&self.budget.layout, &paths, next, slots).ok_or_else(|| {
+                EngineError::Gpu("photon: a path's chunk list does not hold its records".into())
+            })?;
+        let records = canonical
+            .slots
+            .iter()
+            .map(|&s| records[s as usize])
+            .collect();
+        Ok((PathOrder { canonical, records }, paths))
+    }
+}
+
+/// A map read back in path order (`Photon::read_map`).
+struct PathOrder {
+    canonical: slots::Canonical,
+    records: Vec<PhotonRecord>,
 }
 
 /// The gather kernel of every pass (`PhotonUniforms::pass_kernels`): pass i's r_i² and
