@@ -66,8 +66,9 @@ pub struct PhotonParams {
     pub bounces: u32,
     /// Record slots per path on average (the map's memory): where `bounces` is larger, a path
     /// has `slots::INLINE_SLOTS` of its own and takes chunks from its pass's shared pool as it
-    /// grows (`RecordLayout`). A pass whose paths need more than the pool holds cuts the last
-    /// ones short; an update that would is done as a full recompute instead.
+    /// grows (`RecordLayout`). Where a pass's paths need more than its pool holds, the
+    /// session doubles this and recomputes the map (`make_room`); an update whose paths would
+    /// is done as a full recompute.
     pub record_slots: u32,
     /// Russian roulette: a path goes on past interaction `roulette_from` − 1 with this
     /// probability, its power divided by it (>= 1: off, every path runs to the cap or out of
@@ -755,11 +756,9 @@ impl PhotonBudget {
     }
 }
 
-pub struct Photon {
-    params: PhotonParams,
-    budget: PhotonBudget,
-    volume: Arc<GpuVolume>,
-    scene_buf: wgpu::Buffer,
+/// One session's buffers, named as `PhotonBindings` names them.
+struct PhotonBuffers {
+    scene: wgpu::Buffer,
     tf_lut: wgpu::Buffer,
     uniforms: wgpu::Buffer,
     emitters: wgpu::Buffer,
@@ -768,12 +767,140 @@ pub struct Photon {
     grid_cells: wgpu::Buffer,
     grid_sorted: wgpu::Buffer,
     segments: wgpu::Buffer,
+    gather_list: wgpu::Buffer,
+    gather_state: wgpu::Buffer,
+    retrace_list: wgpu::Buffer,
+    changes: wgpu::Buffer,
+    /// The delta scatter's state; a census borrows it (a full pass does not use it).
+    scatter: wgpu::Buffer,
     accum: wgpu::Buffer,
     counters: wgpu::Buffer,
     /// The record chunks' lists (`slots`).
     chunks: wgpu::Buffer,
-    /// The delta scatter's state; a census borrows it (a full pass does not use it).
-    scatter: wgpu::Buffer,
+}
+
+impl PhotonBuffers {
+    fn new(engine: &Engine, budget: &PhotonBudget) -> Self {
+        let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
+            engine.gpu.buffer(label, size, usage)
+        };
+        use wgpu::BufferUsages as U;
+        let (records, grid_sorted, changes, chunks) = Self::slot_buffers(engine, budget);
+        Self {
+            scene: buffer(
+                "photon scene",
+                size_of::<SceneUniforms>() as u64,
+                U::UNIFORM,
+            ),
+            tf_lut: buffer("photon tf lut", (TF_LUT_SIZE * 16) as u64, U::STORAGE),
+            uniforms: buffer(
+                "photon uniforms",
+                size_of::<PhotonUniforms>() as u64,
+                U::UNIFORM,
+            ),
+            emitters: buffer(
+                "photon emitters",
+                (8 * size_of::<PhotonEmitter>()) as u64,
+                U::STORAGE,
+            ),
+            records,
+            paths: buffer("photon paths", budget.path_bytes, U::STORAGE | U::COPY_SRC),
+            grid_cells: buffer(
+                "photon grid cells",
+                budget.grid_cell_bytes,
+                U::STORAGE | U::COPY_SRC,
+            ),
+            grid_sorted,
+            segments: buffer(
+                "photon segments",
+                budget.segment_bytes,
+                U::STORAGE | U::COPY_SRC,
+            ),
+            gather_list: buffer("photon gather list", budget.gather_list_bytes, U::STORAGE),
+            gather_state: buffer("photon gather state", budget.gather_state_bytes, U::STORAGE),
+            retrace_list: buffer("photon retrace list", budget.retrace_list_bytes, U::STORAGE),
+            changes,
+            scatter: buffer(
+                "photon scatter",
+                budget.scatter_bytes,
+                U::STORAGE | U::COPY_SRC | U::COPY_DST,
+            ),
+            accum: buffer("photon accum", budget.accum_bytes, U::STORAGE | U::COPY_SRC),
+            counters: buffer(
+                "photon counters",
+                budget.counter_bytes,
+                U::STORAGE | U::COPY_SRC,
+            ),
+            chunks,
+        }
+    }
+
+    /// The buffers whose size follows the record slots: records, the grid's sorted slots,
+    /// the change list and the chunk lists.
+    fn slot_buffers(
+        engine: &Engine,
+        budget: &PhotonBudget,
+    ) -> (wgpu::Buffer, wgpu::Buffer, wgpu::Buffer, wgpu::Buffer) {
+        use wgpu::BufferUsages as U;
+        let gpu = &engine.gpu;
+        (
+            gpu.buffer(
+                "photon records",
+                budget.record_bytes,
+                U::STORAGE | U::COPY_SRC,
+            ),
+            gpu.buffer(
+                "photon grid sorted",
+                budget.grid_sorted_bytes,
+                U::STORAGE | U::COPY_SRC,
+            ),
+            gpu.buffer("photon changes", budget.change_bytes, U::STORAGE),
+            gpu.buffer(
+                "photon chunks",
+                budget.chunk_bytes,
+                U::STORAGE | U::COPY_SRC,
+            ),
+        )
+    }
+
+    /// Replaces the buffers `slot_buffers` names with ones of `budget`'s sizes.
+    fn resize_slots(&mut self, engine: &Engine, budget: &PhotonBudget) {
+        (self.records, self.grid_sorted, self.changes, self.chunks) =
+            Self::slot_buffers(engine, budget);
+    }
+
+    fn bind_group(&self, engine: &Engine, volume: &GpuVolume) -> wgpu::BindGroup {
+        engine.photon.bind_group(
+            &engine.gpu,
+            &PhotonBindings {
+                scene: &self.scene,
+                volume: &volume.view,
+                tf_lut: &self.tf_lut,
+                uniforms: &self.uniforms,
+                emitters: &self.emitters,
+                records: &self.records,
+                paths: &self.paths,
+                grid_cells: &self.grid_cells,
+                grid_sorted: &self.grid_sorted,
+                segments: &self.segments,
+                gather_list: &self.gather_list,
+                gather_state: &self.gather_state,
+                retrace_list: &self.retrace_list,
+                changes: &self.changes,
+                scatter: &self.scatter,
+                accum: &self.accum,
+                counters: &self.counters,
+                chunks: &self.chunks,
+            },
+        )
+    }
+}
+
+pub struct Photon {
+    params: PhotonParams,
+    budget: PhotonBudget,
+    volume: Arc<GpuVolume>,
+    buffers: PhotonBuffers,
     bind_group: wgpu::BindGroup,
     emitter_count: u32,
     width: u32,
@@ -824,108 +951,13 @@ impl Photon {
             budget = PhotonBudget::new(&params, &volume, width, height, capacity)?;
         }
         budget.check(engine)?;
-        let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
-            engine.gpu.buffer(label, size, usage)
-        };
-        use wgpu::BufferUsages as U;
-        let scene_buf = buffer(
-            "photon scene",
-            size_of::<SceneUniforms>() as u64,
-            U::UNIFORM,
-        );
-        let tf_lut = buffer("photon tf lut", (TF_LUT_SIZE * 16) as u64, U::STORAGE);
-        let uniforms = buffer(
-            "photon uniforms",
-            size_of::<PhotonUniforms>() as u64,
-            U::UNIFORM,
-        );
-        let emitters = buffer(
-            "photon emitters",
-            (8 * size_of::<PhotonEmitter>()) as u64,
-            U::STORAGE,
-        );
-        let records = buffer(
-            "photon records",
-            budget.record_bytes,
-            U::STORAGE | U::COPY_SRC,
-        );
-        let paths = buffer("photon paths", budget.path_bytes, U::STORAGE | U::COPY_SRC);
-        let grid_cells = buffer(
-            "photon grid cells",
-            budget.grid_cell_bytes,
-            U::STORAGE | U::COPY_SRC,
-        );
-        let grid_sorted = buffer(
-            "photon grid sorted",
-            budget.grid_sorted_bytes,
-            U::STORAGE | U::COPY_SRC,
-        );
-        let segments = buffer(
-            "photon segments",
-            budget.segment_bytes,
-            U::STORAGE | U::COPY_SRC,
-        );
-        // Only the shaders use it; the bind group keeps it alive.
-        let gather_list = buffer("photon gather list", budget.gather_list_bytes, U::STORAGE);
-        let gather_state = buffer("photon gather state", budget.gather_state_bytes, U::STORAGE);
-        let retrace_list = buffer("photon retrace list", budget.retrace_list_bytes, U::STORAGE);
-        let changes = buffer("photon changes", budget.change_bytes, U::STORAGE);
-        let scatter = buffer(
-            "photon scatter",
-            budget.scatter_bytes,
-            U::STORAGE | U::COPY_SRC | U::COPY_DST,
-        );
-        let accum = buffer("photon accum", budget.accum_bytes, U::STORAGE | U::COPY_SRC);
-        let counters = buffer(
-            "photon counters",
-            budget.counter_bytes,
-            U::STORAGE | U::COPY_SRC,
-        );
-        let chunks = buffer(
-            "photon chunks",
-            budget.chunk_bytes,
-            U::STORAGE | U::COPY_SRC,
-        );
-        let bind_group = engine.photon.bind_group(
-            &engine.gpu,
-            &PhotonBindings {
-                scene: &scene_buf,
-                volume: &volume.view,
-                tf_lut: &tf_lut,
-                uniforms: &uniforms,
-                emitters: &emitters,
-                records: &records,
-                paths: &paths,
-                grid_cells: &grid_cells,
-                grid_sorted: &grid_sorted,
-                segments: &segments,
-                gather_list: &gather_list,
-                gather_state: &gather_state,
-                retrace_list: &retrace_list,
-                changes: &changes,
-                scatter: &scatter,
-                accum: &accum,
-                counters: &counters,
-                chunks: &chunks,
-            },
-        );
+        let buffers = PhotonBuffers::new(engine, &budget);
+        let bind_group = buffers.bind_group(engine, &volume);
         let mut technique = Self {
             params,
             budget,
             volume,
-            scene_buf,
-            tf_lut,
-            uniforms,
-            emitters,
-            records,
-            paths,
-            grid_cells,
-            grid_sorted,
-            segments,
-            accum,
-            counters,
-            chunks,
-            scatter,
+            buffers,
             bind_group,
             emitter_count: 0,
             width,
@@ -984,7 +1016,7 @@ impl Photon {
         engine
             .gpu
             .queue
-            .write_buffer(&self.tf_lut, 0, bytemuck::cast_slice(&lut));
+            .write_buffer(&self.buffers.tf_lut, 0, bytemuck::cast_slice(&lut));
     }
 
     /// A path's flights at most (`bounces`), or with Russian roulette about the expected
@@ -1005,7 +1037,7 @@ impl Photon {
         engine
             .gpu
             .queue
-            .write_buffer(&self.emitters, 0, bytemuck::cast_slice(&emitters));
+            .write_buffer(&self.buffers.emitters, 0, bytemuck::cast_slice(&emitters));
     }
 
     fn write_scene(&self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
@@ -1031,7 +1063,7 @@ impl Photon {
         engine
             .gpu
             .queue
-            .write_buffer(&self.scene_buf, 0, bytemuck::bytes_of(&uniforms));
+            .write_buffer(&self.buffers.scene, 0, bytemuck::bytes_of(&uniforms));
         Ok(())
     }
 
@@ -1090,7 +1122,7 @@ impl Photon {
         engine
             .gpu
             .queue
-            .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&uniforms));
+            .write_buffer(&self.buffers.uniforms, 0, bytemuck::bytes_of(&uniforms));
         self.last_uniforms.set(uniforms);
     }
 
@@ -1107,7 +1139,7 @@ impl Photon {
         engine
             .gpu
             .queue
-            .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&uniforms));
+            .write_buffer(&self.buffers.uniforms, 0, bytemuck::bytes_of(&uniforms));
         let mut encoder = Self::encoder(engine, "photon grid");
         self.build_grid(&mut encoder, &engine.photon, self.record_count());
         engine.gpu.queue.submit([encoder.finish()]);
@@ -1139,7 +1171,7 @@ impl Photon {
         engine
             .gpu
             .queue
-            .write_buffer(&self.counters, offset, bytemuck::bytes_of(&value));
+            .write_buffer(&self.buffers.counters, offset, bytemuck::bytes_of(&value));
     }
 
     /// Record slots in the map (`path_slots` per path, filled or not).
@@ -1194,9 +1226,10 @@ impl Photon {
             return Ok(false);
         }
         let at = self.capacity as u64 * layout.chunks_per_pass as u64 * 4;
-        let bytes = engine
-            .gpu
-            .read_buffer_range(&self.chunks, at, self.passes as u64 * 4)?;
+        let bytes =
+            engine
+                .gpu
+                .read_buffer_range(&self.buffers.chunks, at, self.passes as u64 * 4)?;
         Ok(bytes
             .chunks_exact(4)
             .any(|w| bytemuck::pod_read_unaligned::<u32>(w) > layout.chunks_per_pass))
@@ -1383,9 +1416,10 @@ impl Photon {
 
     /// The counter words (not the dirty bits; blocks on the GPU).
     fn counter_words(&self, engine: &Engine) -> Result<Vec<u32>, EngineError> {
-        let bytes = engine
-            .gpu
-            .read_buffer_range(&self.counters, 0, (COUNTER_WORDS * 4) as u64)?;
+        let bytes =
+            engine
+                .gpu
+                .read_buffer_range(&self.buffers.counters, 0, (COUNTER_WORDS * 4) as u64)?;
         Ok(bytes
             .chunks_exact(4)
             .map(bytemuck::pod_read_unaligned::<u32>)
@@ -1432,7 +1466,7 @@ impl Photon {
     fn counter(&self, engine: &Engine, word: usize) -> Result<u32, EngineError> {
         let bytes = engine
             .gpu
-            .read_buffer_range(&self.counters, word as u64 * 4, 4)?;
+            .read_buffer_range(&self.buffers.counters, word as u64 * 4, 4)?;
         Ok(bytemuck::pod_read_unaligned::<u32>(&bytes[..4]))
     }
 
@@ -1464,14 +1498,40 @@ impl Photon {
         self.photons_traced += p as u64;
         self.begin_gather(engine, scene, MODE_FULL, Query::default())?;
         // begin_gather has waited for the trace; the pass's chunk count is a word.
-        if !self.warned_chunks && self.chunks_exhausted(engine)? {
-            self.warned_chunks = true;
-            tracing::warn!(
-                "photon: pass {} needed more record chunks than its pool holds (record_slots {}); \
-                 some paths were cut short and every TF edit recomputes the map",
-                self.passes,
-                self.params.record_slots
+        self.make_room(engine, scene)
+    }
+
+    /// Where a pass ran out of record chunks (its last paths were cut short): doubles the
+    /// record slots per path and recomputes the map until none does, as far as the session's
+    /// memory allows (else it logs once; every TF update of such a map is a full recompute).
+    /// Blocks on the GPU.
+    fn make_room(&mut self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
+        while self.chunks_exhausted(engine)? {
+            let mut params = self.params;
+            params.record_slots = params.record_slots.saturating_mul(2);
+            let (w, h) = (self.width, self.height);
+            let budget = PhotonBudget::new(&params, &self.volume, w, h, self.capacity)?;
+            if budget.check(engine).is_err() {
+                if !self.warned_chunks {
+                    self.warned_chunks = true;
+                    tracing::warn!(
+                        "photon: a pass needs more record slots than {} per path, and no more \
+                         fit; some paths were cut short and every TF edit recomputes the map",
+                        self.params.record_slots
+                    );
+                }
+                return Ok(());
+            }
+            tracing::debug!(
+                "photon: a pass ran out of record chunks; {} slots per path",
+                params.record_slots
             );
+            self.buffers.resize_slots(engine, &budget);
+            self.bind_group = self.buffers.bind_group(engine, &self.volume);
+            self.params = params;
+            self.budget = budget;
+            self.records_grid_behind.set(false);
+            self.full_pass(engine, scene, self.passes, false)?;
         }
         Ok(())
     }
@@ -1500,7 +1560,8 @@ impl Photon {
         scene: &Scene,
         passes: u32,
     ) -> Result<(), EngineError> {
-        self.full_pass(engine, scene, passes, false).map(|_| ())
+        self.full_pass(engine, scene, passes, false)?;
+        self.make_room(engine, scene)
     }
 
     /// The full recompute, its trace and the rest (grids, gather, composite) timed apart with a
@@ -1579,16 +1640,19 @@ impl Photon {
             encoder.clear_buffer(scatter, 0, Some(bytes));
             engine.gpu.queue.submit([encoder.finish()]);
         };
-        clear(engine, &self.scatter);
+        clear(engine, &self.buffers.scatter);
         self.census.set(true);
         let done = self.full_pass(engine, scene, passes, false);
         self.census.set(false);
         done?;
-        let words: Vec<u32> =
-            bytemuck::pod_collect_to_vec(&engine.gpu.read_buffer_range(&self.scatter, 0, bytes)?);
+        let words: Vec<u32> = bytemuck::pod_collect_to_vec(&engine.gpu.read_buffer_range(
+            &self.buffers.scatter,
+            0,
+            bytes,
+        )?);
         // Between updates the scatter's per-segment words read SEGMENT_UNTOUCHED (0); a
         // leftover count of 1 would pass for a mark (more work for the next update, same bits).
-        clear(engine, &self.scatter);
+        clear(engine, &self.buffers.scatter);
         let (map, paths) = self.read_map(engine)?;
         let slots = slots as usize;
         let per_record = |offset: usize| -> Vec<u32> {
@@ -1649,7 +1713,7 @@ impl Photon {
             return self.update_by_recompute(engine, scene);
         }
         engine.gpu.queue.write_buffer(
-            &self.counters,
+            &self.buffers.counters,
             0,
             &vec![0u8; self.budget.counter_bytes as usize],
         );
@@ -1735,10 +1799,10 @@ impl Photon {
                 .to_vec())
         };
         let (map, paths) = self.read_map(engine)?;
-        let segments = engine.gpu.read_buffer(&self.segments)?;
-        let hdr = engine.gpu.read_buffer(&self.accum)?;
-        let cells = words(&self.grid_cells, "grid")?;
-        let grid_sorted = words(&self.grid_sorted, "grid")?;
+        let segments = engine.gpu.read_buffer(&self.buffers.segments)?;
+        let hdr = engine.gpu.read_buffer(&self.buffers.accum)?;
+        let cells = words(&self.buffers.grid_cells, "grid")?;
+        let grid_sorted = words(&self.buffers.grid_sorted, "grid")?;
         let pixels = (self.width * self.height) as usize;
         let n_cells = self.budget.cells as usize;
         let slots = self.record_count() as usize;
@@ -1782,15 +1846,15 @@ impl Photon {
     /// The map's records in path order (and the paths as the GPU holds them).
     fn read_map(&self, engine: &Engine) -> Result<(PathOrder, Vec<PhotonPath>), EngineError> {
         let odd = |what: &str| EngineError::Gpu(format!("photon {what} readback has an odd size"));
-        let records = engine.gpu.read_buffer(&self.records)?;
+        let records = engine.gpu.read_buffer(&self.buffers.records)?;
         let records =
             bytemuck::try_cast_slice::<u8, PhotonRecord>(&records).map_err(|_| odd("records"))?;
-        let paths = engine.gpu.read_buffer(&self.paths)?;
+        let paths = engine.gpu.read_buffer(&self.buffers.paths)?;
         let n_paths = (self.passes * self.params.photons_per_pass) as usize;
         let paths = bytemuck::try_cast_slice::<u8, PhotonPath>(&paths).map_err(|_| odd("paths"))?
             [..n_paths]
             .to_vec();
-        let chunks = engine.gpu.read_buffer(&self.chunks)?;
+        let chunks = engine.gpu.read_buffer(&self.buffers.chunks)?;
         let next: &[u32] = bytemuck::try_cast_slice(&chunks).map_err(|_| odd("chunks"))?;
         let slots = self.record_count() as usize;
         let canonical =
@@ -1975,7 +2039,7 @@ impl Technique for Photon {
     }
 
     fn output(&self) -> &wgpu::Buffer {
-        &self.accum
+        &self.buffers.accum
     }
 
     /// Passes in the picture shown (a pass counts once its gather is done).
