@@ -64,7 +64,8 @@ pub struct PhotonParams {
     /// is high enough that the cap cuts no energy that shows (−4% at 16 on the albedo-0.99
     /// scene), since a path's records need not have fixed slots (`record_slots`).
     pub bounces: u32,
-    /// Record slots per path on average (the map's memory): where `bounces` is larger, a path
+    /// Record slots per path on average (the map's memory; 8, where the Mitsuba scenes' passes
+    /// take at most a third of their pools): where `bounces` is larger, a path
     /// has `slots::INLINE_SLOTS` of its own and takes chunks from its pass's shared pool as it
     /// grows (`RecordLayout`). Where a pass's paths need more than its pool holds, the
     /// session doubles this and recomputes the map (`make_room`); an update whose paths would
@@ -156,7 +157,7 @@ impl Default for PhotonParams {
             photons_per_pass: 16384,
             max_passes: 8,
             bounces: 256,
-            record_slots: 16,
+            record_slots: 8,
             roulette_survival: 0.95,
             roulette_from: 2,
             radius_alpha: 2.0 / 3.0,
