@@ -816,6 +816,25 @@ fn gathers_in_parts_equal_a_full_recompute_bit_for_bit() {
     );
 }
 
+/// Makes each edit in turn through `photon`'s update, each equal to a full recompute bit for
+/// bit and each redoing only part of the paths.
+fn local_edits_equal_full<const N: usize>(
+    photon: &mut Photon,
+    volume: &Arc<GpuVolume>,
+    scene: &mut Scene,
+    edits: [TransferFunction; N],
+    p: PhotonParams,
+) {
+    for (i, tf) in edits.into_iter().enumerate() {
+        let what = format!("edit {i}");
+        let report = edit_equals_full(photon, volume, scene, tf, p, &what);
+        assert!(
+            report.paths_retraced + report.paths_recoloured < report.paths,
+            "edit {i} redid every path: {report:?}"
+        );
+    }
+}
+
 /// Issue 25's consistency machinery under updates: long paths with Russian roulette (up to 12
 /// scatterings, roulette from the second) and four passes, each gathered with its own, shrinking
 /// radius (Knaus–Zwicker). Colour, mixed and opacity edits in a row still equal a full recompute
@@ -839,14 +858,7 @@ fn roulette_and_shrinking_radii_keep_updates_bit_exact() {
         cornell_with(&[SPHERE_GREEN, TALL_BLOCK_HALF]),
         cornell_with(&[SPHERE_GREEN]),
     ];
-    for (i, tf) in edits.into_iter().enumerate() {
-        let what = format!("edit {i}");
-        let report = edit_equals_full(&mut photon, &volume, &mut s, tf, p, &what);
-        assert!(
-            report.paths_retraced + report.paths_recoloured < report.paths,
-            "edit {i} redid every path: {report:?}"
-        );
-    }
+    local_edits_equal_full(&mut photon, &volume, &mut s, edits, p);
 }
 
 /// Paths longer than their own slots take chunks from their pass's pool (issue 25: no fixed
@@ -881,14 +893,7 @@ fn long_paths_take_chunks_and_keep_updates_bit_exact() {
         cornell_with(&[SPHERE_GREEN, TALL_BLOCK_HALF]),
         cornell_with(&[SPHERE_GREEN]),
     ];
-    for (i, tf) in edits.into_iter().enumerate() {
-        let what = format!("edit {i}");
-        let report = edit_equals_full(&mut photon, &volume, &mut s, tf, p, &what);
-        assert!(
-            report.paths_retraced + report.paths_recoloured < report.paths,
-            "edit {i} redid every path: {report:?}"
-        );
-    }
+    local_edits_equal_full(&mut photon, &volume, &mut s, edits, p);
 }
 
 /// A pass whose paths need more chunks than its pool holds would cut the last ones short:
@@ -913,15 +918,9 @@ fn a_map_that_runs_out_of_chunks_grows_and_stays_exact() {
         "the slots did not grow"
     );
     assert!(!photon.chunks_exhausted(engine()).expect("read"));
-    for (i, tf) in [
+    let edits = [
         cornell_with(&[SPHERE_RED]),
         cornell_with(&[TALL_BLOCK_GONE]),
-    ]
-    .into_iter()
-    .enumerate()
-    {
-        let what = format!("edit {i}");
-        let report = edit_equals_full(&mut photon, &volume, &mut s, tf, p, &what);
-        assert!(report.paths_retraced < report.paths, "{what}: {report:?}");
-    }
+    ];
+    local_edits_equal_full(&mut photon, &volume, &mut s, edits, p);
 }
