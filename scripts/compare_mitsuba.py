@@ -35,6 +35,7 @@ import hashlib
 import json
 import os
 import pathlib
+import resource
 import subprocess
 import sys
 import time
@@ -125,6 +126,8 @@ def main() -> int:
     ap.add_argument("--ref-spp", type=int, default=None, help="Mitsuba's spp (default: --spp)")
     ap.add_argument("--max-depth", type=int, default=None,
                     help="Mitsuba's max_depth (default 1024; 2 for raymarch)")
+    ap.add_argument("--seed", type=int, default=1,
+                    help="voxlight's scene seed (independent renders for telling variance from bias)")
     ap.add_argument("--options", default=None, help="technique_options, JSON")
     ap.add_argument("--mean-tolerance", type=float, default=None,
                     help="also fail when |mean ratio - 1| exceeds this")
@@ -178,7 +181,7 @@ def main() -> int:
         "width": args.size,
         "height": args.size,
         "iterations": args.spp,
-        "seed": 1,
+        "seed": args.seed,
     }
     if args.options:
         scene["technique_options"] = json.loads(args.options)
@@ -186,12 +189,18 @@ def main() -> int:
     scene_path.write_text(json.dumps(scene, indent=2))
     ours_pfm = out / "voxlight.pfm"
     started = time.monotonic()
+    cpu_before = resource.getrusage(resource.RUSAGE_CHILDREN)
     subprocess.run([args.voxlight, "render", "--scene", str(scene_path), "--out", str(out / "voxlight.png"),
                     "--pfm", str(ours_pfm)], check=True, env={**os.environ, "RUST_LOG": "warn"})
     seconds = time.monotonic() - started
+    # CPU time too: on a shared VM (lavapipe) it varies less with other jobs than wall time.
+    cpu_after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu_seconds = (cpu_after.ru_utime - cpu_before.ru_utime) + (cpu_after.ru_stime - cpu_before.ru_stime)
     ours = read_pfm(ours_pfm)
     theirs = mitsuba_reference(args, out, volume, extent, camera, env, sun_dir, sun, point_pos, point)
-    return compare(args, ours, theirs, env, seconds)
+    # Beside voxlight's image, for per-block looks and for averaging independent renders.
+    np.save(out / "mitsuba.npy", theirs)
+    return compare(args, ours, theirs, env, seconds, cpu_seconds)
 
 
 def mitsuba_reference(args, out, volume, extent, camera, env, sun_dir, sun, point_pos, point) -> np.ndarray:
@@ -250,7 +259,7 @@ def mitsuba_reference(args, out, volume, extent, camera, env, sun_dir, sun, poin
     return theirs
 
 
-def compare(args, ours: np.ndarray, theirs: np.ndarray, env, seconds: float) -> int:
+def compare(args, ours: np.ndarray, theirs: np.ndarray, env, seconds: float, cpu_seconds: float) -> int:
     def blocks(img: np.ndarray, b: int = 8) -> np.ndarray:
         h, w, _ = img.shape
         return img[: h - h % b, : w - w % b].reshape(h // b, b, w // b, b, 3).mean(axis=(1, 3))
@@ -268,8 +277,8 @@ def compare(args, ours: np.ndarray, theirs: np.ndarray, env, seconds: float) -> 
     mean_ours, mean_theirs = float(ours.mean()), float(theirs.mean())
     report = {
         "technique": args.technique, "scene": args.scene, "spp": args.spp, "ref_spp": args.ref_spp or args.spp,
-        "size": args.size, "grid": args.grid, "density_scale": args.density, "options": args.options,
-        "seconds": round(seconds, 2),
+        "seed": args.seed, "size": args.size, "grid": args.grid, "density_scale": args.density, "options": args.options,
+        "seconds": round(seconds, 2), "cpu_seconds": round(cpu_seconds, 2),
         "mean_voxlight": mean_ours, "mean_mitsuba": mean_theirs,
         "mean_ratio": mean_ours / mean_theirs, "mean_rel_diff": mean_ours / mean_theirs - 1.0,
         "block8_rel_rmse": rel_rmse, "block8_rel_rmse_mirrored": results["mirrored x"],

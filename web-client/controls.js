@@ -517,8 +517,8 @@ const OPTION_CONTROLS = {
   manylight: [
     { key: 'virtual_lights', label: 'Virtual lights', title: 'Virtual spherical lights stored', values: [64, 256, 1000, 2000] },
     { key: 'transmittance', label: 'Transmittance', title: 'From each virtual light: shadow-map lookup (point or interpolated) or a ray marched', values: ['avsm_trilinear', 'avsm_point', 'ray_marched'] },
-    { key: 'face_res', label: 'Shadow maps', title: 'Shadow-map texels per cube-face edge', values: [8, 16, 24, 48] },
-    { key: 'vsl_radius', label: 'Light radius', title: 'Radius of a virtual spherical light (world units; the volume is 1 across)', values: [0.01, 0.02, 0.05] },
+    { key: 'face_res', label: 'Shadow maps', title: 'Shadow-map texels per cube-face edge', values: [4, 8, 16, 24, 48] },
+    { key: 'vsl_radius', label: 'Light radius', title: 'Radius of a virtual spherical light (world units; the volume is 1 across)', values: [0.01, 0.02, 0.025, 0.05] },
     { key: 'iterations_per_set', label: 'New lights every', title: 'Iterations rendered with one set of virtual lights before a new, independent set is averaged in (0: one set, as in the paper)', values: [0, 1, 4, 16] },
   ],
   irradiance: [
