@@ -924,3 +924,62 @@ fn a_map_that_runs_out_of_chunks_grows_and_stays_exact() {
     ];
     local_edits_equal_full(&mut photon, &volume, &mut s, edits, p);
 }
+
+/// A pass's trace runs in parts too (`step` returns between them, so that an edit waits for a
+/// part of the trace, not for the pass): a camera edit and a TF edit that arrive while passes
+/// are being traced still leave a picture that converges to a full recompute's bits (the TF
+/// edit finishes the trace with the TF it started with, then updates the whole map).
+#[test]
+fn passes_traced_in_parts_with_edits_between_equal_a_full_recompute() {
+    let engine = engine();
+    let volume = cornell_volume(32);
+    let p = PhotonParams {
+        max_passes: 3,
+        ..params(Invalidation::DirtyCells)
+    };
+    let mut s = cornell_scene(24, cornell_with(&[]));
+    s.target_iterations = 3;
+    let mut photon = Photon::new(engine, volume.clone(), &s, p).expect("photon");
+    // Passes of 4096 paths in parts of 1000.
+    photon.fix_trace_part(1000);
+    let step = |photon: &mut Photon, scene: &Scene| {
+        photon.step(engine, scene, Duration::ZERO).expect("step");
+    };
+    // Into the second pass's trace: it starts, then one part.
+    let mut traced_in_parts = false;
+    while photon.iteration() < 1 {
+        step(&mut photon, &s);
+        traced_in_parts |= photon.tracing().is_some_and(|t| t > 0);
+    }
+    assert!(traced_in_parts, "the first pass was traced in one step");
+    step(&mut photon, &s);
+    step(&mut photon, &s);
+    assert!(
+        photon
+            .tracing()
+            .is_some_and(|t| t > 0 && t < p.photons_per_pass)
+    );
+    let mut turned = s.clone();
+    turned.camera.eye = [0.4, 0.2, 2.5];
+    photon
+        .apply(engine, &turned, &Change::Camera)
+        .expect("apply");
+    while photon.iteration() < 2 {
+        step(&mut photon, &turned);
+    }
+    // Into the third pass's trace, then a TF edit.
+    step(&mut photon, &turned);
+    step(&mut photon, &turned);
+    assert!(
+        photon
+            .tracing()
+            .is_some_and(|t| t > 0 && t < p.photons_per_pass)
+    );
+    let mut edited = turned.clone();
+    edited.tf = cornell_with(&[SPHERE_RED, TALL_BLOCK_HALF]);
+    let edit = Change::tf(&turned.tf, &edited.tf);
+    photon.apply(engine, &edited, &edit).expect("apply");
+    assert_eq!(photon.tracing(), None, "a TF edit left a pass half traced");
+    converge(&mut photon, &edited);
+    assert_equals_full(&photon, &volume, &edited, p, "edits between trace parts");
+}

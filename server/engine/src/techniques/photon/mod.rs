@@ -12,6 +12,9 @@
 //! - A camera edit keeps the photons and gathers again.
 //! - What a gather does is planned by pure, tested steps (`GridPlan`, `touch_entries`,
 //!   `GatherInProgress::part`); `begin_gather` and `gather_part` only record the dispatches.
+//! - A pass's trace runs in parts of about `GATHER_PART_TIME` (paths are independent); a TF
+//!   edit first finishes it with the TF it started with, a camera edit lets it finish, and
+//!   its last part starts the pass's gather.
 //! - A gather runs in parts of about `GATHER_PART_TIME`, so that `step` returns between them
 //!   and an edit waits for a part, not for the gather (~9 s at 512² on lavapipe); segments are
 //!   independent, so the parts give one dispatch's bits. A camera or light edit drops a gather
@@ -41,7 +44,8 @@ use crate::techniques::photon::gpu::{
     COUNTER_TOUCH, COUNTER_WORDS, EMIT_DIRECTIONAL, EMIT_ENVIRONMENT, EMIT_POINT, GRID_CHANGES,
     GRID_RECORDS, GatherState, MODE_FULL, MODE_UPDATE, PASS_KERNEL_ENTRIES, PhotonBindings,
     PhotonChange, PhotonEmitter, PhotonPass, PhotonPath, PhotonRecord, PhotonUniforms, SLOT_WORDS,
-    SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment, dispatch_linear, dispatch_single,
+    SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment, WORKGROUP, dispatch_linear,
+    dispatch_single,
 };
 use crate::tf::{
     TF_LUT_SIZE, bake, collision_query_historygram, opacity_query_historygram,
@@ -422,6 +426,22 @@ fn part_slots(fixed: Option<u32>, rate: Option<f64>) -> u32 {
             (rate * GATHER_PART_TIME.as_secs_f64()).clamp(1.0, u32::MAX as f64) as u32
         }
         (None, None) => FIRST_PART_SLOTS,
+    }
+}
+
+/// Paths of a pass's first trace part, before the trace's rate is known.
+const FIRST_TRACE_PATHS: u32 = 2048;
+
+/// Paths of `step`'s next trace part: `fixed` (tests), else as many as the last part's `rate`
+/// (paths per second) traces in `GATHER_PART_TIME` (at least a workgroup's), else
+/// `FIRST_TRACE_PATHS`.
+fn trace_part_paths(fixed: Option<u32>, rate: Option<f64>) -> u32 {
+    match (fixed, rate) {
+        (Some(paths), _) => paths.max(1),
+        (None, Some(rate)) => {
+            (rate * GATHER_PART_TIME.as_secs_f64()).clamp(WORKGROUP as f64, u32::MAX as f64) as u32
+        }
+        (None, None) => FIRST_TRACE_PATHS,
     }
 }
 
@@ -929,6 +949,12 @@ pub struct Photon {
     shown: u32,
     /// Gather list slots per second of the last part (sizes the next part).
     gather_rate: Option<f64>,
+    /// Paths of the last pass traced so far, while its trace runs in parts (`step`).
+    tracing: Option<u32>,
+    /// Paths per second of the last trace part (sizes the next part).
+    trace_rate: Option<f64>,
+    /// Paths per trace part set by `fix_trace_part` instead of the measured rate.
+    fixed_trace_part: Option<u32>,
     /// Slots per part set by `fix_gather_part` instead of the measured rate.
     fixed_part: Option<u32>,
     /// Whether a pass has run out of record chunks (logged once).
@@ -975,6 +1001,9 @@ impl Photon {
             gathering: None,
             shown: 0,
             gather_rate: None,
+            tracing: None,
+            trace_rate: None,
+            fixed_trace_part: None,
             fixed_part: None,
             warned_chunks: false,
         };
@@ -997,6 +1026,11 @@ impl Photon {
     /// Photon passes in the map.
     pub fn passes(&self) -> u32 {
         self.passes
+    }
+
+    /// Paths of the pass being traced traced so far (None: no trace under way).
+    pub fn tracing(&self) -> Option<u32> {
+        self.tracing
     }
 
     /// Gather rounds (dispatches over the unfinished segments) the last gather took.
@@ -1180,9 +1214,27 @@ impl Photon {
         self.passes * self.params.photons_per_pass * self.budget.layout.path_slots
     }
 
-    /// Traces paths [offset, offset + count) (MODE_FULL) or retraces the first `count` paths
-    /// of the retrace list (MODE_UPDATE), in its own submission (the uniforms differ from the
-    /// gather's).
+    /// Empties the chunk pools of the passes paths `paths` (whole passes) belong to, before
+    /// a full trace of them (`trace_clear`), in its own submission.
+    fn clear_pools(&self, engine: &Engine, scene: &Scene, paths: std::ops::Range<u32>) {
+        let pool = self.budget.layout.pool_slots();
+        if pool == 0 || paths.is_empty() {
+            return;
+        }
+        let slots = paths.len() as u32 / self.params.photons_per_pass * pool;
+        let dispatch = Dispatch {
+            mode: MODE_FULL,
+            trace_paths: paths,
+            ..Dispatch::default()
+        };
+        self.write_uniforms(engine, scene, Query::default(), dispatch);
+        let clear = &engine.photon.trace_clear;
+        self.submit_linear(engine, "photon trace clear", clear, slots);
+    }
+
+    /// Traces paths [offset, offset + count) (MODE_FULL; their passes' pools emptied first,
+    /// `clear_pools`) or retraces the first `count` paths of the retrace list (MODE_UPDATE),
+    /// in its own submission (the uniforms differ from the gather's).
     fn trace(
         &self,
         engine: &Engine,
@@ -1201,22 +1253,7 @@ impl Photon {
             ..Dispatch::default()
         };
         self.write_uniforms(engine, scene, query, dispatch);
-        let mut encoder = Self::encoder(engine, "photon trace");
-        let pool = self.budget.layout.pool_slots();
-        if mode == MODE_FULL && pool > 0 {
-            let clear = &engine.photon.trace_clear;
-            let slots = count / self.params.photons_per_pass * pool;
-            dispatch_linear(
-                &mut encoder,
-                "photon trace clear",
-                clear,
-                &self.bind_group,
-                slots,
-            );
-        }
-        let trace = &engine.photon.trace;
-        dispatch_linear(&mut encoder, "photon trace", trace, &self.bind_group, count);
-        engine.gpu.queue.submit([encoder.finish()]);
+        self.submit_linear(engine, "photon trace", &engine.photon.trace, count);
     }
 
     /// Whether a pass's paths needed more chunks than its pool holds since its last full trace
@@ -1482,6 +1519,12 @@ impl Photon {
         engine.gpu.lane_loop_budget().unwrap_or(u32::MAX)
     }
 
+    /// Traces `paths` paths per part of `step`'s passes, whatever they take (tests of the
+    /// parts).
+    pub fn fix_trace_part(&mut self, paths: u32) {
+        self.fixed_trace_part = Some(paths.max(1));
+    }
+
     /// Gathers `slots` list slots per part of `step`'s gathers, whatever they take: for tests
     /// of the parts, which otherwise only long gathers take.
     pub fn fix_gather_part(&mut self, slots: u32) {
@@ -1495,11 +1538,54 @@ impl Photon {
         let offset = self.passes * p;
         self.passes += 1;
         self.write_scene(engine, scene)?;
-        self.trace(engine, scene, MODE_FULL, offset, p, Query::default());
+        self.clear_pools(engine, scene, offset..offset + p);
+        self.tracing = Some(0);
+        Ok(())
+    }
+
+    /// Traces the next part of the pass under way (sized to `GATHER_PART_TIME` by the last
+    /// part's rate) and waits for it; after its last part, starts the pass's gather. Paths are
+    /// independent, so the parts give one dispatch's records.
+    fn trace_next_part(&mut self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
+        let paths = trace_part_paths(self.fixed_trace_part, self.trace_rate);
+        self.trace_part(engine, scene, paths)
+    }
+
+    /// Traces at most `paths` more paths of the pass under way (`trace_next_part`).
+    fn trace_part(
+        &mut self,
+        engine: &Engine,
+        scene: &Scene,
+        paths: u32,
+    ) -> Result<(), EngineError> {
+        let Some(done) = self.tracing else {
+            return Ok(());
+        };
+        let p = self.params.photons_per_pass;
+        let count = paths.min(p - done);
+        let offset = (self.passes - 1) * p + done;
+        let started = Instant::now();
+        self.trace(engine, scene, MODE_FULL, offset, count, Query::default());
+        engine.gpu.wait_idle()?;
+        let took = started.elapsed().as_secs_f64();
+        if took > 0.0 {
+            self.trace_rate = Some(count as f64 / took);
+        }
+        if done + count < p {
+            self.tracing = Some(done + count);
+            return Ok(());
+        }
+        self.tracing = None;
         self.photons_traced += p as u64;
         self.begin_gather(engine, scene, MODE_FULL, Query::default())?;
         // begin_gather has waited for the trace; the pass's chunk count is a word.
         self.make_room(engine, scene)
+    }
+
+    /// Traces what is left of the pass under way at once (before anything that reads the
+    /// whole map), then starts its gather.
+    fn finish_trace(&mut self, engine: &Engine, scene: &Scene) -> Result<(), EngineError> {
+        self.trace_part(engine, scene, u32::MAX)
     }
 
     /// Where a pass ran out of record chunks (its last paths were cut short): doubles the
@@ -1586,6 +1672,7 @@ impl Photon {
         timed: bool,
     ) -> Result<(Duration, Duration), EngineError> {
         self.gathering = None;
+        self.tracing = None;
         self.passes = passes.min(self.capacity);
         self.write_tf(engine, scene);
         self.write_emitters(engine, scene);
@@ -1595,6 +1682,7 @@ impl Photon {
             engine.gpu.wait_idle()?;
         }
         let started = Instant::now();
+        self.clear_pools(engine, scene, 0..paths);
         self.trace(engine, scene, MODE_FULL, 0, paths, Query::default());
         let mut trace = Duration::ZERO;
         if timed {
@@ -1682,6 +1770,9 @@ impl Photon {
         // old one for the update to correct (seconds at 512² on a software adapter). Any other
         // update starts from segments of the old TF: a gather under way ends first (with the
         // old TF's table, still bound).
+        // A pass being traced is finished with the TF it started with (still in the LUT), so
+        // that the update starts from a whole map; its full gather then runs with the new TF.
+        self.finish_trace(engine, scene)?;
         let regather = self.gathering.is_some_and(|g| g.mode == MODE_FULL);
         if !regather {
             self.finish_gather(engine, scene)?;
@@ -1982,7 +2073,8 @@ impl Technique for Photon {
                 // Photons do not depend on the camera: gather again (in parts, by `step`); a
                 // gather under way, of the old view, is dropped.
                 self.shown = 0;
-                if self.passes > 0 {
+                // A pass being traced gathers everything once its trace is done.
+                if self.passes > 0 && self.tracing.is_none() {
                     self.write_scene(engine, scene)?;
                     self.begin_gather(engine, scene, MODE_FULL, Query::default())?;
                 }
@@ -1990,6 +2082,7 @@ impl Technique for Photon {
             Change::Lights | Change::Params => {
                 self.write_emitters(engine, scene);
                 self.gathering = None;
+                self.tracing = None;
                 self.passes = 0;
                 self.shown = 0;
             }
@@ -2019,7 +2112,9 @@ impl Technique for Photon {
         let start = Instant::now();
         let shown = self.shown;
         loop {
-            if self.gathering.is_some() {
+            if self.tracing.is_some() {
+                self.trace_next_part(engine, scene)?;
+            } else if self.gathering.is_some() {
                 self.gather_next_part(engine, scene)?;
             } else if self.passes < target {
                 self.begin_pass(engine, scene)?;
@@ -2034,7 +2129,7 @@ impl Technique for Photon {
         Ok(StepReport {
             iterations_done: self.shown.saturating_sub(shown),
             iteration: self.shown,
-            converged: self.gathering.is_none() && self.shown >= target,
+            converged: self.tracing.is_none() && self.gathering.is_none() && self.shown >= target,
             gpu_time: start.elapsed(),
         })
     }
@@ -2238,6 +2333,16 @@ mod tests {
         assert_eq!(part_slots(None, Some(100_000.0)), 4000);
         assert_eq!(part_slots(None, Some(0.0)), 1);
         assert_eq!(part_slots(None, Some(f64::INFINITY)), u32::MAX);
+    }
+
+    #[test]
+    fn trace_parts_are_sized_by_the_last_parts_rate() {
+        assert_eq!(trace_part_paths(None, None), FIRST_TRACE_PATHS);
+        assert_eq!(trace_part_paths(Some(100), Some(1e9)), 100);
+        // 40 ms at 100 000 paths per second.
+        assert_eq!(trace_part_paths(None, Some(100_000.0)), 4000);
+        // At least a workgroup's paths, however slow the last part was.
+        assert_eq!(trace_part_paths(None, Some(10.0)), WORKGROUP);
     }
 
     #[test]
