@@ -967,6 +967,17 @@ fn passes_traced_in_parts_with_edits_between_equal_a_full_recompute() {
     while photon.iteration() < 2 {
         step(&mut photon, &turned);
     }
+    // Two passes, both gathered in the new view.
+    let mut two = turned.clone();
+    two.target_iterations = 2;
+    let p2 = PhotonParams { max_passes: 2, ..p };
+    assert_equals_full(
+        &photon,
+        &volume,
+        &two,
+        p2,
+        "a camera edit between trace parts",
+    );
     // Into the third pass's trace, then a TF edit.
     step(&mut photon, &turned);
     step(&mut photon, &turned);

@@ -2073,10 +2073,13 @@ impl Technique for Photon {
                 // Photons do not depend on the camera: gather again (in parts, by `step`); a
                 // gather under way, of the old view, is dropped.
                 self.shown = 0;
-                // A pass being traced gathers everything once its trace is done.
-                if self.passes > 0 && self.tracing.is_none() {
+                if self.passes > 0 {
                     self.write_scene(engine, scene)?;
-                    self.begin_gather(engine, scene, MODE_FULL, Query::default())?;
+                    // A pass being traced gathers everything, in this view, once its trace
+                    // is done.
+                    if self.tracing.is_none() {
+                        self.begin_gather(engine, scene, MODE_FULL, Query::default())?;
+                    }
                 }
             }
             Change::Lights | Change::Params => {
