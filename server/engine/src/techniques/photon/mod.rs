@@ -1883,7 +1883,7 @@ impl Photon {
     /// (`PhotonState`).
     pub fn read_state(&self, engine: &Engine) -> Result<PhotonState, EngineError> {
         self.catch_up_records_grid(engine);
-        let cast = |what: &str| EngineError::Gpu(format!("photon {what} readback has an odd size"));
+        let cast = odd_readback;
         let words = |buffer: &wgpu::Buffer, what: &str| -> Result<Vec<u32>, EngineError> {
             let bytes = engine.gpu.read_buffer(buffer)?;
             Ok(bytemuck::try_cast_slice::<u8, u32>(&bytes)
@@ -1937,7 +1937,7 @@ impl Photon {
 
     /// The map's records in path order (and the paths as the GPU holds them).
     fn read_map(&self, engine: &Engine) -> Result<(PathOrder, Vec<PhotonPath>), EngineError> {
-        let odd = |what: &str| EngineError::Gpu(format!("photon {what} readback has an odd size"));
+        let odd = odd_readback;
         let records = engine.gpu.read_buffer(&self.buffers.records)?;
         let records =
             bytemuck::try_cast_slice::<u8, PhotonRecord>(&records).map_err(|_| odd("records"))?;
@@ -1948,9 +1948,9 @@ impl Photon {
             .to_vec();
         let chunks = engine.gpu.read_buffer(&self.buffers.chunks)?;
         let next: &[u32] = bytemuck::try_cast_slice(&chunks).map_err(|_| odd("chunks"))?;
-        let slots = self.record_count() as usize;
-        let canonical =
-            slots::canonical(&self.budget.layout, &paths, next, slots).ok_or_else(|| {
+        let record_slots = self.record_count() as usize;
+        let canonical = slots::canonical(&self.budget.layout, &paths, next, record_slots)
+            .ok_or_else(|| {
                 EngineError::Gpu("photon: a path's chunk list does not hold its records".into())
             })?;
         let records = canonical
@@ -1960,6 +1960,11 @@ impl Photon {
             .collect();
         Ok((PathOrder { canonical, records }, paths))
     }
+}
+
+/// A read-back buffer whose size is not a whole number of its records.
+fn odd_readback(what: &str) -> EngineError {
+    EngineError::Gpu(format!("photon {what} readback has an odd size"))
 }
 
 /// A map read back in path order (`Photon::read_map`).
