@@ -192,6 +192,41 @@ fn record_slot(p: u32, head: u32, k: u32) -> u32 {
     return chunk_slot(p, chain_chunk(p, head, k), (k - photon.inline_slots) % CHUNK_SLOTS);
 }
 
+// Walks a path's slots in order (interaction k, then k + 1, ...) with one next-pointer read
+// per chunk, where record_slot walks the list from its head for every interaction.
+struct SlotCursor {
+    k: u32,
+    // The chunk that holds interaction k − 1 (CHUNK_NONE while k − 1 is an inline slot).
+    chunk: u32,
+}
+
+// The slot of interaction cursor.k (one the path holds), and the cursor moved past it.
+fn cursor_slot(p: u32, head: u32, cursor: ptr<function, SlotCursor>) -> u32 {
+    let k = (*cursor).k;
+    (*cursor).k = k + 1u;
+    if (k < photon.inline_slots) {
+        return inline_slot(p, k);
+    }
+    let j = (k - photon.inline_slots) % CHUNK_SLOTS;
+    if (j == 0u) {
+        if (k == photon.inline_slots) {
+            (*cursor).chunk = head;
+        } else if ((*cursor).chunk != CHUNK_NONE) {
+            (*cursor).chunk = atomicLoad(&chunks[chunk_word(p, (*cursor).chunk)]);
+        }
+    }
+    return chunk_slot(p, (*cursor).chunk, j);
+}
+
+// A cursor at interaction k of path p (list starting at head).
+fn slot_cursor(p: u32, head: u32, k: u32) -> SlotCursor {
+    var chunk = CHUNK_NONE;
+    if (k > photon.inline_slots) {
+        chunk = chain_chunk(p, head, k - 1u);
+    }
+    return SlotCursor(k, chunk);
+}
+
 // Takes the next free chunk of p's pass as the last of p's list (CHUNK_NONE: none is left).
 fn take_chunk(p: u32) -> u32 {
     let c = atomicAdd(&chunks[photon.chunk_counts_at + pass_of(p)], 1u);
@@ -270,6 +305,12 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
 
     var start = -1;
     var old_count = 0u;
+    // Where an update resumes the first moved flight: at its old collision, whose opacity
+    // fell (the tentative points before it are replayed without reading the volume), with
+    // the path's historygram up to there (the old record's).
+    var resume = false;
+    var resume_position = vec3<f32>(0.0);
+    var resume_hist = vec2<u32>(0u);
     // The bins of the path's collisions (kept ones, then new ones).
     var collisions = vec2<u32>(0u);
     if (photon.mode == MODE_UPDATE) {
@@ -286,15 +327,25 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         var ends_differently = false;
         var power_before = vec3<f32>(0.0);
         var j = 0;
+        var cursor = SlotCursor(0u, CHUNK_NONE);
         loop {
             if (j >= i32(path.count)) {
                 break;
             }
-            let slot = record_slot(p, head, u32(j));
+            let slot = cursor_slot(p, head, &cursor);
             let r = records[slot];
             let bit = collision_bit(r);
             let opacity_fell_here = hist_hits_collision_query(bit.x, bit.y) && hist_hits_opacity_query(bit.x, bit.y);
-            if (hist_hits_rejection_query(r.hist_lo, r.hist_hi) || opacity_fell_here) {
+            if (hist_hits_rejection_query(r.hist_lo, r.hist_hi)) {
+                break;
+            }
+            if (opacity_fell_here) {
+                // No tentative point of this flight met a bin whose opacity rose, so every
+                // one before the collision stays rejected (tracking_opacity cannot rise where
+                // the LUT fell): the flight resumes at the collision (`resume`).
+                resume = true;
+                resume_position = r.position;
+                resume_hist = vec2<u32>(r.hist_lo, r.hist_hi);
                 break;
             }
             collisions |= bit;
@@ -343,10 +394,8 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         k = u32(start) + 1u;
     }
     // The chunk that holds interaction k − 1 (past the inline slots).
-    var chunk = CHUNK_NONE;
-    if (k > photon.inline_slots) {
-        chunk = chain_chunk(p, head, k - 1u);
-    }
+    let chunk_at_start = slot_cursor(p, head, k);
+    var chunk = chunk_at_start.chunk;
     var count = k;
     // The tracking steps of the last flight, which stored no record (census).
     var last_steps = 0u;
@@ -385,6 +434,9 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         var collided = false;
         var albedo = vec3<f32>(0.0);
         var steps = 0u;
+        // Only the first flight an update tracks resumes.
+        var replay = resume;
+        resume = false;
         loop {
             steps += 1u;
             t += -log(1.0 - rng_next(&rng)) / photon.majorant;
@@ -392,9 +444,20 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
                 break;
             }
             let x = origin + dir * t;
+            let accept = rng_next(&rng);
+            if (replay) {
+                // The same draws and the same t as the flight that stored the old record, up
+                // to its position bit for bit; should an earlier point lie there too (a zero
+                // step), it was rejected at the same value and is rejected again below.
+                if (any(bitcast<vec3<u32>>(x) != bitcast<vec3<u32>>(resume_position))) {
+                    continue;
+                }
+                replay = false;
+                hist = resume_hist;
+            }
             let v = data_at(x);
             hist |= hist_bit(v);
-            if (rng_next(&rng) * photon.majorant < tracking_opacity(v) * scene.density_scale) {
+            if (accept * photon.majorant < tracking_opacity(v) * scene.density_scale) {
                 collided = true;
                 albedo = classify(v).rgb;
                 position = x;
@@ -455,8 +518,9 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
             store_record(inline_slot(p, r), empty_record());
         }
     } else {
+        var tail = slot_cursor(p, head, count);
         for (var r = count; r < old_count; r++) {
-            store_record(record_slot(p, head, r), empty_record());
+            store_record(cursor_slot(p, head, &tail), empty_record());
         }
     }
     paths[p] = PhotonPath(count, hist.x, hist.y, collisions.x, collisions.y, head, 0u, 0u);
