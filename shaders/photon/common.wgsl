@@ -394,7 +394,7 @@ fn grid_cell3(p: vec3<f32>) -> vec3<i32> {
 }
 
 // Dirty-cell grid (SPATIAL_CELLS, and every delta gather): half the hash cell's edge, so that
-// marking the cells within the gather radius of a changed photon (mark_spatial) covers its
+// marking the cells within the gather radius of a changed photon (mark_cells) covers its
 // reach more tightly than whole cells.
 fn dirty_cell3(p: vec3<f32>) -> vec3<i32> {
     let c = vec3<i32>(floor((p - scene.box_min) / (0.5 * photon.radius)));

@@ -22,19 +22,22 @@
 
 #import photon/common
 
-// Marks the spatial historygram (3×64 bits) at world position p and the dirty bits of the
-// half-size cells that come within the gather radius of p (of the 5 × 5 × 5 around p's, about
-// two thirds: those whose box lies within the radius, with 1% to spare for rounding), every one a
-// sample within the radius of p can lie in: SPATIAL_CELLS finds stale segments by them, and
-// every delta gather skips the samples outside them. A bit already set is not written again
-// (dense edits mark the same cells many times).
-fn mark_spatial(p: vec3<f32>) {
+// Marks the spatial historygram (3×64 bits) at world position p.
+fn mark_axes(p: vec3<f32>) {
     let b = spatial_bins(p);
     for (var axis = 0u; axis < 3u; axis++) {
         let bin = b[axis];
         let word = COUNTER_SPATIAL + axis * 2u + bin / 32u;
         atomicOr(&counters[word], 1u << (bin % 32u));
     }
+}
+
+// Marks the dirty bits of the half-size cells that come within the gather radius of p (of the
+// 5 × 5 × 5 around p's, about two thirds: those whose box lies within the radius, with 1% to
+// spare for rounding), every one a sample within the radius of p can lie in: SPATIAL_CELLS finds
+// stale segments by them, and every delta gather skips the samples outside them. A bit already
+// set is not written again (dense edits mark the same cells many times).
+fn mark_cells(p: vec3<f32>) {
     {
         let c = dirty_cell3(p);
         let dims = vec3<i32>(2u * photon.grid_dims);
@@ -70,13 +73,30 @@ fn same_record(a: PhotonRecord, b: PhotonRecord) -> bool {
         && a.cell == b.cell && a.hist_lo == b.hist_lo && a.hist_hi == b.hist_hi;
 }
 
-// Appends a version of a changed record to the change list (dropped past its capacity: the
-// host then sees COUNTER_CHANGES over it and regathers instead).
+// Appends a version of a changed record to the change list and marks its position (dropped
+// past the list's capacity: the host then sees COUNTER_CHANGES over it and regathers instead).
+// The dirty cells of a listed change are marked afterwards, by `trace_mark_changes`: the 125
+// neighbours' loop would otherwise hold up the other lanes of a retraced path's SIMD batch
+// while they track their flights. A change the list cannot hold is marked here.
 fn append_change(index: u32, r: PhotonRecord, kind: u32, old_power: vec3<f32>) {
+    mark_axes(r.position);
     let slot = atomicAdd(&counters[COUNTER_CHANGES], 1u);
     if (slot < photon.change_capacity) {
         changes[slot] = PhotonChange(r.position, r.cell, r.power, kind, r.direction, record_pass(index), old_power, 0u);
+    } else {
+        mark_cells(r.position);
     }
+}
+
+// MODE_UPDATE, after `main`: marks the dirty cells of every change the list holds
+// (append_change).
+@compute @workgroup_size(64)
+fn trace_mark_changes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let i = linear_index(gid, groups);
+    if (i >= min(atomicLoad(&counters[COUNTER_CHANGES]), photon.change_capacity)) {
+        return;
+    }
+    mark_cells(changes[i].position);
 }
 
 // Writes record `index`; in MODE_UPDATE a record that differs from the one it replaces marks
@@ -87,15 +107,12 @@ fn store_record(index: u32, record: PhotonRecord) {
         if (!same_record(old, record)) {
             atomicAdd(&counters[COUNTER_CHANGED], 1u);
             if (old.cell != CELL_NONE && record.cell != CELL_NONE && same_place(old, record)) {
-                mark_spatial(record.position);
                 append_change(index, record, CHANGE_REPLACE, old.power);
             } else {
                 if (old.cell != CELL_NONE) {
-                    mark_spatial(old.position);
                     append_change(index, old, CHANGE_SUBTRACT, vec3<f32>(0.0));
                 }
                 if (record.cell != CELL_NONE) {
-                    mark_spatial(record.position);
                     append_change(index, record, CHANGE_ADD, vec3<f32>(0.0));
                 }
             }

@@ -1827,9 +1827,17 @@ impl Photon {
                 ..photons_report(&words, paths, segments)
             }));
         }
+        // The dirty cells of the changes the list holds (the trace marked the rest); a
+        // full regather needs none.
+        let changes = self.counter(engine, COUNTER_CHANGES)? as u64;
+        self.submit_linear(
+            engine,
+            "photon trace mark changes",
+            &engine.photon.trace_mark_changes,
+            changes.min(self.budget.change_entries) as u32,
+        );
         if self.params.invalidation == Invalidation::DirtyCells && self.budget.scatter_capacity > 0
         {
-            let changes = self.counter(engine, COUNTER_CHANGES)? as u64;
             if let Some(entries) = touch_entries(changes, segments, self.budget.change_entries) {
                 self.touch(engine, scene, query, entries);
             }
