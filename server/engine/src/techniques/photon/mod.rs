@@ -1836,11 +1836,11 @@ impl Photon {
             &engine.photon.trace_mark_changes,
             changes.min(self.budget.change_entries) as u32,
         );
-        if self.params.invalidation == Invalidation::DirtyCells && self.budget.scatter_capacity > 0
+        if self.params.invalidation == Invalidation::DirtyCells
+            && self.budget.scatter_capacity > 0
+            && let Some(entries) = touch_entries(changes, segments, self.budget.change_entries)
         {
-            if let Some(entries) = touch_entries(changes, segments, self.budget.change_entries) {
-                self.touch(engine, scene, query, entries);
-            }
+            self.touch(engine, scene, query, entries);
         }
         self.begin_gather(engine, scene, MODE_UPDATE, query)?;
         self.finish_gather(engine, scene)?;
