@@ -364,6 +364,36 @@ fn camera_edit_keeps_photons_and_matches_a_full_recompute() {
 }
 
 #[test]
+fn the_hash_grid_holds_every_photon_in_its_own_cell() {
+    // The grid's prefix sum runs over blocks of 4096 cells (photon/grid.wgsl); with more than
+    // two blocks, each cell's range of the sorted slots must hold exactly its records.
+    let volume = cornell_volume(32);
+    let p = params(Invalidation::DirtyCells);
+    let photon = converged(&volume, &cornell_scene(32, cornell_with(&[])), p);
+    let cells = photon.budget().cells as usize;
+    assert!(cells > 2 * 4096, "{cells} cells: fewer than three blocks");
+    let state = photon.read_state(engine()).expect("read");
+    let mut counts = vec![0u32; cells];
+    for r in state.records.iter().filter(|r| r.cell != u32::MAX) {
+        counts[r.cell as usize] += 1;
+    }
+    let stored: u32 = counts.iter().sum();
+    assert!(stored > 1000, "{stored} photons stored");
+    let mut start = 0u32;
+    for (c, &count) in counts.iter().enumerate() {
+        assert_eq!(state.grid_cells[c], start, "start of cell {c}");
+        for &i in &state.grid_sorted[start as usize..(start + count) as usize] {
+            assert_eq!(
+                state.records[i as usize].cell, c as u32,
+                "a slot of cell {c}"
+            );
+        }
+        start += count;
+    }
+    assert_eq!(state.grid_cells[cells], stored, "the grid's total");
+}
+
+#[test]
 fn single_scattering_agrees_with_raymarch() {
     // A white-ish scattering ball lit by a directional light and the environment. With one
     // stored bounce the photon map estimates exactly what `raymarch` does (single scattering);

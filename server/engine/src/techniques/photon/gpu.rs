@@ -204,7 +204,9 @@ pub struct PhotonPass {
     pub trace_mark_changes: wgpu::ComputePipeline,
     pub grid_clear: wgpu::ComputePipeline,
     pub grid_count: wgpu::ComputePipeline,
-    pub grid_scan: wgpu::ComputePipeline,
+    pub grid_scan_reduce: wgpu::ComputePipeline,
+    pub grid_scan_blocks: wgpu::ComputePipeline,
+    pub grid_scan_apply: wgpu::ComputePipeline,
     pub grid_scatter: wgpu::ComputePipeline,
     pub gather_mark: wgpu::ComputePipeline,
     pub gather: wgpu::ComputePipeline,
@@ -255,7 +257,9 @@ impl PhotonPass {
             trace_mark_changes: pipeline("photon trace mark changes", &trace, "trace_mark_changes"),
             grid_clear: pipeline("photon grid clear", &grid, "grid_clear"),
             grid_count: pipeline("photon grid count", &grid, "grid_count"),
-            grid_scan: pipeline("photon grid scan", &grid, "grid_scan"),
+            grid_scan_reduce: pipeline("photon grid scan reduce", &grid, "grid_scan_reduce"),
+            grid_scan_blocks: pipeline("photon grid scan blocks", &grid, "grid_scan_blocks"),
+            grid_scan_apply: pipeline("photon grid scan apply", &grid, "grid_scan_apply"),
             grid_scatter: pipeline("photon grid scatter", &grid, "grid_scatter"),
             gather_mark: pipeline("photon gather mark", &gather, "gather_mark"),
             gather: pipeline("photon gather", &gather, "gather"),
@@ -313,12 +317,20 @@ pub fn dispatch_linear(
     dispatch(encoder, label, pipeline, (bind_group, &[]), [x, y, 1], None);
 }
 
-/// One workgroup of `pipeline` (the grid scan).
-pub fn dispatch_single(
+/// `groups` workgroups of `pipeline` along x (the grid scan's steps, one per block of cells).
+pub fn dispatch_groups(
     encoder: &mut wgpu::CommandEncoder,
     label: &str,
     pipeline: &wgpu::ComputePipeline,
     bind_group: &wgpu::BindGroup,
+    groups: u32,
 ) {
-    dispatch(encoder, label, pipeline, (bind_group, &[]), [1, 1, 1], None);
+    dispatch(
+        encoder,
+        label,
+        pipeline,
+        (bind_group, &[]),
+        [groups, 1, 1],
+        None,
+    );
 }

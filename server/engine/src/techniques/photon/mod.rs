@@ -44,8 +44,8 @@ use crate::techniques::photon::gpu::{
     COUNTER_TOUCH, COUNTER_WORDS, EMIT_DIRECTIONAL, EMIT_ENVIRONMENT, EMIT_POINT, GRID_CHANGES,
     GRID_RECORDS, GatherState, MODE_FULL, MODE_UPDATE, PASS_KERNEL_ENTRIES, PhotonBindings,
     PhotonChange, PhotonEmitter, PhotonPass, PhotonPath, PhotonRecord, PhotonUniforms, SLOT_WORDS,
-    SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment, WORKGROUP, dispatch_linear,
-    dispatch_single,
+    SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment, WORKGROUP, dispatch_groups,
+    dispatch_linear,
 };
 use crate::tf::{
     TF_LUT_SIZE, bake, collision_query_historygram, opacity_query_historygram,
@@ -590,6 +590,10 @@ const TOUCH_SEGMENTS_PER_CHANGE: u64 = 16;
 
 /// Largest hash grid (cells) a session may build.
 pub const MAX_GRID_CELLS: u64 = 1 << 22;
+/// Cells per workgroup of the grid's prefix sum (SCAN_BLOCK in photon/grid.wgsl).
+const SCAN_BLOCK: u64 = 4096;
+// Every block of the largest grid is one workgroup of one dispatch.
+const _: () = assert!(MAX_GRID_CELLS.div_ceil(SCAN_BLOCK) <= 65535);
 
 impl PhotonBudget {
     pub fn new(
@@ -652,7 +656,8 @@ impl PhotonBudget {
         let record_bytes = records * size_of::<PhotonRecord>() as u64;
         let path_bytes = paths * size_of::<PhotonPath>() as u64;
         // Two grids (the records', an update's changes'), each cell starts then cursors.
-        let grid_cell_bytes = 2 * (2 * cells + 1) * 4;
+        // After them, the scan's sum per block of cells (photon/grid.wgsl, block_sum_word).
+        let grid_cell_bytes = (2 * (2 * cells + 1) + cells.div_ceil(SCAN_BLOCK)) * 4;
         let change_entries = match params.change_list {
             0 => records,
             n => (n as u64).min(records),
@@ -1490,7 +1495,16 @@ impl Photon {
         let cells = self.budget.cells as u32;
         dispatch_linear(encoder, "photon grid clear", &pass.grid_clear, bg, cells);
         dispatch_linear(encoder, "photon grid count", &pass.grid_count, bg, items);
-        dispatch_single(encoder, "photon grid scan", &pass.grid_scan, bg);
+        // MAX_GRID_CELLS / SCAN_BLOCK blocks at most: within one dispatch's x.
+        let blocks = (cells as u64).div_ceil(SCAN_BLOCK) as u32;
+        let (reduce, scan, apply) = (
+            &pass.grid_scan_reduce,
+            &pass.grid_scan_blocks,
+            &pass.grid_scan_apply,
+        );
+        dispatch_groups(encoder, "photon grid scan reduce", reduce, bg, blocks);
+        dispatch_groups(encoder, "photon grid scan blocks", scan, bg, 1);
+        dispatch_groups(encoder, "photon grid scan apply", apply, bg, blocks);
         dispatch_linear(
             encoder,
             "photon grid scatter",
