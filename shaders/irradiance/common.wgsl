@@ -84,6 +84,12 @@ struct IrradianceParams {
     delta_free_paths: f32,
     // Scattering events per camera sample along the marched view ray (FLAG_MARCHED_VIEW).
     view_picks: u32,
+    // Validation rounds (DispatchInfo.validate): the relative disagreement beyond a fresh
+    // estimate's 95% interval that shrinks an entry, and that estimate's samples.
+    validation_threshold: f32,
+    validation_samples: u32,
+    pad0: u32,
+    pad1: u32,
 }
 
 // A cache entry: the irradiance at `position` and, per half-axis of its local frame (+t, −t,
@@ -137,7 +143,9 @@ struct DispatchInfo {
     count: u32,
     // Round of the creation or update procedure (random numbers).
     round: u32,
-    pad0: u32,
+    // Update dispatches: 1 for a validation round (its own budget, beyond the paper): the
+    // update pass only checks the entries at its points against fresh estimates there.
+    validate: u32,
 }
 
 const FLAG_CACHE: u32 = 1u;
@@ -151,8 +159,10 @@ const FLAG_SAMPLED_HISTORYGRAMS: u32 = 8u;
 const FLAG_MARCHED_VIEW: u32 = 16u;
 // The update also checks the entries holding its point against a fresh estimate there.
 const FLAG_VALIDATE_HITS: u32 = 32u;
-// Irradiance samples of that fresh estimate.
+// Irradiance samples of that fresh estimate (validation rounds: params.validation_samples).
 const VALIDATION_SAMPLES: u32 = 8u;
+// Validation rounds (DispatchInfo.validate) draw their points with a salt of their own.
+const VALIDATE_SALT: u32 = 0x2c1b3c6du;
 // The render pass traces the directional and point lights' direct light at every event (a
 // shadow ray each), and entries hold only the rest of the irradiance (the environment and light
 // scattered by the medium): no shadow edge is ever interpolated.

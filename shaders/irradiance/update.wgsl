@@ -5,8 +5,9 @@
 // point: its radii in the point's octant shrink, each in proportion to the point's coordinate
 // along it (Fig. 6), until the point lies on its zone's edge. With FLAG_VALIDATE_HITS (beyond the
 // paper) the point's irradiance is first estimated afresh, and every entry predicting outside
-// that estimate's 95% interval (widened by the threshold) loses the point too. Rust twin:
-// server/engine/src/techniques/irradiance/gpu.rs.
+// that estimate's 95% interval (widened by the threshold) loses the point too. A validation
+// round (DispatchInfo.validate, a budget of its own) does only that check, at points of its
+// own. Rust twin: server/engine/src/techniques/irradiance/gpu.rs.
 
 #import irradiance/paths
 #import irradiance/cache
@@ -65,7 +66,12 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (block >= params.block_count) {
         return;
     }
-    var rng = rng_new(scene.seed ^ UPDATE_SALT, block, dispatch.round);
+    let validation_round = dispatch.validate != 0u;
+    var rng = rng_new(
+        scene.seed ^ select(UPDATE_SALT, VALIDATE_SALT, validation_round),
+        block,
+        dispatch.round,
+    );
     let x = (block % params.blocks_x) * 16u + min(u32(rng_next(&rng) * 16.0), 15u);
     let y = (block / params.blocks_x) * 8u + min(u32(rng_next(&rng) * 8.0), 7u);
     if (x >= scene.width || y >= scene.height) {
@@ -116,19 +122,25 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
 
     let tolerance = log(1.0 + params.update_threshold);
-    if (n > 0u && (params.flags & FLAG_VALIDATE_HITS) != 0u) {
+    if (n > 0u && (validation_round || (params.flags & FLAG_VALIDATE_HITS) != 0u)) {
+        let samples = select(VALIDATION_SAMPLES, max(params.validation_samples, 2u), validation_round);
+        let allowed = select(
+            tolerance,
+            log(1.0 + params.validation_threshold),
+            validation_round,
+        );
         var sum = 0.0;
         var sum_sq = 0.0;
-        for (var s = 0u; s < VALIDATION_SAMPLES; s++) {
+        for (var s = 0u; s < samples; s++) {
             let l = luminance(irradiance_sample(p, &rng));
             sum += l;
             sum_sq += l * l;
         }
-        let k = f32(VALIDATION_SAMPLES);
+        let k = f32(samples);
         let mean = sum / k;
         let half_width = 1.96 * sqrt(max(0.0, (sum_sq - k * mean * mean) / (k - 1.0)) / k);
-        let high = log(max(mean + half_width, IRRADIANCE_FLOOR)) + tolerance;
-        let low = log(max(mean - half_width, IRRADIANCE_FLOOR)) - tolerance;
+        let high = log(max(mean + half_width, IRRADIANCE_FLOOR)) + allowed;
+        let low = log(max(mean - half_width, IRRADIANCE_FLOOR)) - allowed;
         for (var i = 0u; i < n; i++) {
             if (predictions[i] > high || predictions[i] < low) {
                 exclude_point(ids[i], p);
@@ -136,6 +148,9 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
                 atomicAdd(&words[COUNTER_REDUCTIONS], 1u);
             }
         }
+    }
+    if (validation_round) {
+        return;
     }
     for (var remaining = n; remaining >= 2u; remaining--) {
         var low = 1e30;

@@ -218,7 +218,8 @@ fn rust_and_wgsl_layouts_agree() {
                 max_radius, update_threshold, frame, flags, blocks_x, blocks_y, block_count,
                 node_count, refs_offset, node_claim_offset, node_held_offset, block_claim_offset,
                 block_held_offset, entry_capacity, max_pending, pending, min_samples, max_samples,
-                bounces, priority_offset, voxel, dark_floor, delta_free_paths, view_picks),
+                bounces, priority_offset, voxel, dark_floor, delta_free_paths, view_picks,
+                validation_threshold, validation_samples, pad0, pad1),
         );
         assert_layout(
             &module,
@@ -238,7 +239,7 @@ fn rust_and_wgsl_layouts_agree() {
             &module,
             "DispatchInfo",
             size_of::<DispatchInfo>(),
-            fields!(DispatchInfo: first, count, round, pad0),
+            fields!(DispatchInfo: first, count, round, validate),
         );
     }
 }

@@ -52,6 +52,10 @@ pub struct IrradianceParams {
     pub dark_floor: f32,
     pub delta_free_paths: f32,
     pub view_picks: u32,
+    pub validation_threshold: f32,
+    pub validation_samples: u32,
+    pub pad0: u32,
+    pub pad1: u32,
 }
 
 /// Matches `CacheEntry` in irradiance/common.wgsl.
@@ -121,7 +125,8 @@ pub struct DispatchInfo {
     pub first: u32,
     pub count: u32,
     pub round: u32,
-    pub pad0: u32,
+    /// Update dispatches: 1 for a validation round (only the check against fresh estimates).
+    pub validate: u32,
 }
 
 /// Bytes between dispatch descriptors (the uniform dynamic-offset alignment).

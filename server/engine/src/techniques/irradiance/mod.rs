@@ -167,6 +167,20 @@ pub struct IrradianceConfig {
     /// widened by the update threshold (a shadow edge cast into a zone from outside it, which
     /// the zone's own stencil cannot see; the paper's update only compares entries).
     pub validate_hits: bool,
+    /// Beyond the paper: share of a frame for validation rounds of their own (0: none). A
+    /// validation round checks one point per 16 × 8 block as `validate_hits` does, and only
+    /// that: at the update's 1–2% of a frame too few points are checked to find the zones a
+    /// shadow edge crosses (the cache of all the light stayed 1.6–3.4% too bright).
+    pub validation_fraction: f32,
+    /// Validation rounds per frame instead of `validation_fraction` (repeatable runs; with
+    /// `fixed_rounds` and None, no validation rounds).
+    pub validation_rounds: Option<u32>,
+    /// Validation rounds: the relative disagreement, beyond the fresh estimate's 95% interval,
+    /// at which an entry is shrunk (a zone's own extrapolation may err by ε at its edge, so
+    /// below ε this also trims zones that are only as wrong as Eq. 9–10 allow), and the
+    /// samples of that estimate.
+    pub validation_threshold: f32,
+    pub validation_samples: u32,
     /// How often the octree is rebuilt with the radii the update shrank.
     pub rebuild_interval: Duration,
     /// Time over which the hit rate is measured.
@@ -213,6 +227,10 @@ impl Default for IrradianceConfig {
             // on lavapipe; more did not pay (docs/benchmarks.md).
             view_picks: 2,
             validate_hits: false,
+            validation_fraction: 0.0,
+            validation_rounds: None,
+            validation_threshold: 0.1,
+            validation_samples: 8,
             rebuild_interval: Duration::from_millis(1000),
             hit_rate_window: Duration::from_millis(100),
             fixed_rounds: None,
@@ -230,19 +248,21 @@ const ISOTROPIC_G: f32 = 1e-3;
 
 /// Render passes per frame at most (a block is rendered at most this often in one frame).
 const MAX_RENDER_PASSES: usize = 8;
-/// Creation and update rounds per frame at most.
+/// Creation, update and validation rounds per frame at most.
 const MAX_CREATE_ROUNDS: u32 = 48;
 const MAX_UPDATE_ROUNDS: u32 = 16;
+const MAX_VALIDATION_ROUNDS: u32 = 32;
 /// Dispatch descriptors per frame.
 const DISPATCH_SLOTS: u32 = 128;
 /// Workgroups one dispatch may have along x.
 const MAX_WORKGROUPS: usize = 65535;
-/// The phases of a frame that are timed: rendering, creation, update, the rest.
-const PHASES: usize = 4;
+/// The phases of a frame that are timed: rendering, creation, update, validation, the rest.
+const PHASES: usize = 5;
 const PHASE_RENDER: usize = 0;
 const PHASE_CREATE: usize = 1;
 const PHASE_UPDATE: usize = 2;
-const PHASE_TAIL: usize = 3;
+const PHASE_VALIDATE: usize = 3;
+const PHASE_TAIL: usize = 4;
 /// The paper's pending entries and the viewport they were set for (Table 1).
 const PAPER_PENDING: f64 = 1000.0;
 const PAPER_PIXELS: f64 = 1280.0 * 720.0;
@@ -269,6 +289,7 @@ pub struct CacheStats {
     pub last_edit: Option<(u32, u32)>,
     pub creation_rounds: u64,
     pub update_rounds: u64,
+    pub validation_rounds: u64,
 }
 
 /// A copy of the cache (benchmarks compare TF-edit strategies from one state).
@@ -284,6 +305,8 @@ pub struct FrameTimes {
     pub render: Duration,
     pub create: Duration,
     pub update: Duration,
+    /// Validation rounds (`validation_fraction`).
+    pub validate: Duration,
     /// The requests pass, read-backs and the octree upload.
     pub bookkeeping: Duration,
     pub blocks_rendered: u32,
@@ -291,7 +314,7 @@ pub struct FrameTimes {
 
 impl FrameTimes {
     pub fn total(&self) -> Duration {
-        self.render + self.create + self.update + self.bookkeeping
+        self.render + self.create + self.update + self.validate + self.bookkeeping
     }
 }
 
@@ -569,10 +592,12 @@ pub struct Irradiance {
     /// Time owed to creation and update (seconds; may go negative).
     creation_credit: f64,
     update_credit: f64,
+    validation_credit: f64,
     /// Measured costs: per block rendered, per request and creation round, per update round.
     block_cost: Option<f64>,
     request_round_cost: Option<f64>,
     update_round_cost: Option<f64>,
+    validation_round_cost: Option<f64>,
     /// (time, hits, misses) of recent frames.
     hit_history: VecDeque<(Instant, u64, u64)>,
     counters: [u32; COUNTER_WORDS],
@@ -720,9 +745,11 @@ impl Irradiance {
             priorities: Vec::new(),
             creation_credit: 0.0,
             update_credit: 0.0,
+            validation_credit: 0.0,
             block_cost: None,
             request_round_cost: None,
             update_round_cost: None,
+            validation_round_cost: None,
             hit_history: VecDeque::new(),
             counters: [0; COUNTER_WORDS],
             stats: CacheStats::default(),
@@ -855,6 +882,10 @@ impl Irradiance {
             dark_floor: self.config.dark_floor * brightest_irradiance(scene),
             delta_free_paths: self.config.delta_free_paths,
             view_picks: self.config.view_picks,
+            validation_threshold: self.config.validation_threshold,
+            validation_samples: self.config.validation_samples,
+            pad0: 0,
+            pad1: 0,
         };
         engine
             .gpu
@@ -1217,9 +1248,25 @@ impl Irradiance {
             Some(t) => t.as_secs_f64(),
             None => self.block_cost.unwrap_or(0.0) * n as f64 / (1.0 - tc - tu).max(0.5),
         };
-        let (mut create_rounds, mut update_rounds) = (0u32, 0u32);
+        let (mut create_rounds, mut update_rounds, mut validation_rounds) = (0u32, 0u32, 0u32);
         let mut planned = 0.0;
         if cache_on && cache_work {
+            let fixed_validation = self
+                .config
+                .validation_rounds
+                .or(self.config.fixed_rounds.map(|_| 0));
+            if let Some(v) = fixed_validation {
+                validation_rounds = if self.mirror.is_empty() { 0 } else { v };
+            } else if !self.mirror.is_empty() && self.config.validation_fraction > 0.0 {
+                let (rounds, cost) = rounds_owed(
+                    &mut self.validation_credit,
+                    self.config.validation_fraction as f64 * frame_time,
+                    self.validation_round_cost,
+                    MAX_VALIDATION_ROUNDS,
+                );
+                validation_rounds = rounds;
+                planned += cost;
+            }
             if let Some((c, u)) = self.config.fixed_rounds {
                 create_rounds = if self.pending > 0 { c } else { 0 };
                 update_rounds = if self.mirror.len() >= 2 { u } else { 0 };
@@ -1268,6 +1315,7 @@ impl Irradiance {
                 create: create_rounds,
                 pending: self.pending,
                 update: update_rounds,
+                validate: validation_rounds,
                 block_count: self.layout.block_count,
                 frame: self.frame,
                 priorities: self.config.priorities,
@@ -1279,6 +1327,7 @@ impl Irradiance {
             render_dispatches,
             create_first,
             update_first,
+            validate_first,
             priority_first,
         } = plan;
         let blocks_rendered = list.len() as u32;
@@ -1339,6 +1388,12 @@ impl Irradiance {
             PHASE_UPDATE,
             &mut (0..if cache_on { update_rounds } else { 0 })
                 .map(|r| (Pass::Update, update_first + r, update_groups)),
+        )?;
+        phase(
+            &mut encoder,
+            PHASE_VALIDATE,
+            &mut (0..if cache_on { validation_rounds } else { 0 })
+                .map(|r| (Pass::Update, validate_first + r, update_groups)),
         )?;
         let requests = (cache_on && cache_work).then_some((Pass::Requests, 0, 1));
         let priority_passes: Vec<_> = if self.config.priorities {
@@ -1411,6 +1466,7 @@ impl Irradiance {
         times.render = phase_times[PHASE_RENDER];
         times.create = phase_times[PHASE_CREATE];
         times.update = phase_times[PHASE_UPDATE];
+        times.validate = phase_times[PHASE_VALIDATE];
         let bookkeeping = Instant::now();
         if blocks_rendered > 0 {
             let cost = times.render.as_secs_f64() / blocks_rendered as f64;
@@ -1433,6 +1489,14 @@ impl Irradiance {
             self.update_round_cost = Some(robust_smooth(self.update_round_cost, cost));
             self.stats.update_rounds += update_rounds as u64;
         } else if let Some(cost) = &mut self.update_round_cost {
+            *cost *= 0.95;
+        }
+        if validation_rounds > 0 && cache_on {
+            self.validation_credit -= times.validate.as_secs_f64();
+            let cost = times.validate.as_secs_f64() / validation_rounds as f64;
+            self.validation_round_cost = Some(robust_smooth(self.validation_round_cost, cost));
+            self.stats.validation_rounds += validation_rounds as u64;
+        } else if let Some(cost) = &mut self.validation_round_cost {
             *cost *= 0.95;
         }
         if self.config.priorities {
@@ -1459,7 +1523,7 @@ impl Irradiance {
         // upload and the CPU's share of the frame (all of it counts against a frame's time).
         let elapsed = frame_started.elapsed();
         times.bookkeeping = elapsed
-            .saturating_sub(times.render + times.create + times.update)
+            .saturating_sub(times.render + times.create + times.update + times.validate)
             .max(phase_times[PHASE_TAIL] + bookkeeping.elapsed());
         self.bookkeeping_cost = Some(smooth(
             self.bookkeeping_cost,
@@ -1680,7 +1744,13 @@ fn validate(config: &IrradianceConfig) -> Result<(), EngineError> {
         && positive(config.update_threshold)
         && fraction(config.creation_fraction)
         && fraction(config.update_fraction)
-        && config.creation_fraction.1 + config.update_fraction.1 < 0.9
+        && (0.0..=0.45).contains(&config.validation_fraction)
+        && config.creation_fraction.1 + config.update_fraction.1 + config.validation_fraction < 0.9
+        && config
+            .validation_rounds
+            .is_none_or(|v| v <= MAX_VALIDATION_ROUNDS)
+        && positive(config.validation_threshold)
+        && (2..=256).contains(&config.validation_samples)
         && positive(config.fraction_exponent)
         && config.entry_capacity >= 1
         && config.min_samples >= 2
@@ -1888,14 +1958,16 @@ struct PlannedRounds {
     create: u32,
     pending: u32,
     update: u32,
+    /// Validation rounds (update dispatches with `validate` set).
+    validate: u32,
     block_count: u32,
     frame: u32,
     priorities: bool,
 }
 
 /// One frame's dispatches, as the passes read them from the dispatch buffer: render chunks
-/// (of the block list) first, then the creation rounds, the update rounds and the priority
-/// chunks, each a slot of `infos`.
+/// (of the block list) first, then the creation rounds, the update rounds, the validation
+/// rounds and the priority chunks, each a slot of `infos`.
 #[derive(Debug, PartialEq)]
 struct DispatchPlan {
     infos: Vec<DispatchInfo>,
@@ -1905,6 +1977,7 @@ struct DispatchPlan {
     render_dispatches: Vec<(u32, u32)>,
     create_first: u32,
     update_first: u32,
+    validate_first: u32,
     priority_first: u32,
 }
 
@@ -1920,7 +1993,7 @@ impl DispatchPlan {
                     first: list.len() as u32,
                     count: chunk.len() as u32,
                     round: 0,
-                    pad0: 0,
+                    validate: 0,
                 });
                 list.extend_from_slice(chunk);
             }
@@ -1931,7 +2004,7 @@ impl DispatchPlan {
                 first: 0,
                 count: rounds.pending,
                 round: r,
-                pad0: 0,
+                validate: 0,
             });
         }
         let update_first = infos.len() as u32;
@@ -1940,7 +2013,16 @@ impl DispatchPlan {
                 first: 0,
                 count: rounds.block_count,
                 round: rounds.frame.wrapping_mul(MAX_UPDATE_ROUNDS) + r,
-                pad0: 0,
+                validate: 0,
+            });
+        }
+        let validate_first = infos.len() as u32;
+        for r in 0..rounds.validate.min(MAX_VALIDATION_ROUNDS) {
+            infos.push(DispatchInfo {
+                first: 0,
+                count: rounds.block_count,
+                round: rounds.frame.wrapping_mul(MAX_VALIDATION_ROUNDS) + r,
+                validate: 1,
             });
         }
         let priority_first = infos.len() as u32;
@@ -1951,7 +2033,7 @@ impl DispatchPlan {
                     first: first as u32,
                     count: (n - first).min(MAX_WORKGROUPS) as u32,
                     round: 0,
-                    pad0: 0,
+                    validate: 0,
                 });
             }
         }
@@ -1967,6 +2049,7 @@ impl DispatchPlan {
             render_dispatches,
             create_first,
             update_first,
+            validate_first,
             priority_first,
         })
     }
@@ -2002,6 +2085,7 @@ mod tests {
             create,
             pending: 7,
             update,
+            validate: 0,
             block_count,
             frame: 3,
             priorities,
@@ -2031,6 +2115,26 @@ mod tests {
         assert_eq!(plan.infos[4].round, 3 * MAX_UPDATE_ROUNDS);
         assert_eq!((plan.infos[5].first, plan.infos[5].count), (0, 9));
         assert_eq!(plan.infos.len(), 6);
+        assert!(plan.infos.iter().all(|i| i.validate == 0));
+        // Validation rounds: update dispatches over every block, after the update rounds,
+        // flagged, and numbered by frame too.
+        let plan = DispatchPlan::new(
+            &passes,
+            PlannedRounds {
+                validate: 3,
+                ..rounds(2, 1, 9, true)
+            },
+        )
+        .expect("plan");
+        assert_eq!(
+            (plan.update_first, plan.validate_first, plan.priority_first),
+            (4, 5, 8)
+        );
+        let validation = &plan.infos[5..8];
+        assert!(validation.iter().all(|i| i.validate == 1 && i.count == 9));
+        assert_eq!(validation[2].round, 3 * MAX_VALIDATION_ROUNDS + 2);
+        assert_eq!(plan.infos[4].validate, 0);
+        assert_eq!(plan.infos[8].validate, 0);
     }
 
     #[test]
