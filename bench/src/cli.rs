@@ -130,6 +130,17 @@ pub struct IrradianceArgs {
     /// The update also checks the entries at its point against a fresh estimate there.
     #[arg(long)]
     pub validate_hits: bool,
+    /// Share of each frame for validation rounds of their own (beyond the paper; 0: none):
+    /// each checks one point per 16 × 8 block, as `--validate-hits` does within the update.
+    #[arg(long, default_value_t = 0.0)]
+    pub validation_share: f32,
+    /// Validation rounds: relative disagreement (beyond the fresh estimate's 95% interval)
+    /// that shrinks an entry.
+    #[arg(long, default_value_t = 0.1)]
+    pub validation_threshold: f32,
+    /// Validation rounds: irradiance samples of each fresh estimate.
+    #[arg(long, default_value_t = 8)]
+    pub validation_samples: u32,
     /// What cache entries hold.
     #[arg(long, value_enum, default_value = "indirect")]
     pub cached_light: CachedLightArg,
@@ -148,6 +159,9 @@ impl IrradianceArgs {
                 ViewEventArg::Tracked => ViewEvent::DeltaTracking,
             },
             validate_hits: self.validate_hits,
+            validation_fraction: self.validation_share,
+            validation_threshold: self.validation_threshold,
+            validation_samples: self.validation_samples,
             cached_light: match self.cached_light {
                 CachedLightArg::Indirect => CachedLight::Indirect,
                 CachedLightArg::All => CachedLight::All,

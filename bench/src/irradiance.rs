@@ -212,6 +212,15 @@ fn estimated_error(variance: &[f32], reference: &Reference) -> f64 {
 struct Errors {
     reference: Vec<f64>,
     estimated: Vec<f64>,
+    /// The picture's mean luminance against the reference's, less 1 (`Reference::bias`).
+    bias: Vec<f64>,
+}
+
+impl Errors {
+    /// The last picture's bias (0 before any frame).
+    fn last_bias(&self) -> f64 {
+        self.bias.last().copied().unwrap_or(0.0)
+    }
 }
 
 /// One frame: its wall time and its split (render, create, update, rest); its errors are
@@ -229,7 +238,11 @@ fn timed_frame(
     let (picture, variance) = technique.read_estimate(engine)?;
     errors.reference.push(reference.error(&picture));
     errors.estimated.push(estimated_error(&variance, reference));
-    Ok((elapsed, [t.render, t.create, t.update, t.bookkeeping]))
+    errors.bias.push(reference.bias(&picture));
+    Ok((
+        elapsed,
+        [t.render, t.create, t.update + t.validate, t.bookkeeping],
+    ))
 }
 
 /// Runs `frames` frames, returning each frame's errors and time.
@@ -243,6 +256,7 @@ fn run_frames(
     let mut errors = Errors {
         reference: Vec::with_capacity(frames as usize),
         estimated: Vec::with_capacity(frames as usize),
+        bias: Vec::with_capacity(frames as usize),
     };
     let mut times = Vec::with_capacity(frames as usize);
     let mut split = [Duration::ZERO; 4];
@@ -250,19 +264,21 @@ fn run_frames(
         let started = Instant::now();
         let t = technique.frame(engine, scene, true)?;
         times.push(started.elapsed());
-        for (s, d) in split
-            .iter_mut()
-            .zip([t.render, t.create, t.update, t.bookkeeping])
+        for (s, d) in
+            split
+                .iter_mut()
+                .zip([t.render, t.create, t.update + t.validate, t.bookkeeping])
         {
             *s += d;
         }
         let (picture, variance) = technique.read_estimate(engine)?;
         errors.reference.push(reference.error(&picture));
         errors.estimated.push(estimated_error(&variance, reference));
+        errors.bias.push(reference.bias(&picture));
     }
     let ms = split.map(|d| d.as_secs_f64() * 1e3 / frames.max(1) as f64);
     eprintln!(
-        "    per frame: render {:.1} ms, create {:.1} ms, update {:.1} ms, rest {:.1} ms",
+        "    per frame: render {:.1} ms, create {:.1} ms, update and validation {:.1} ms, rest {:.1} ms",
         ms[0], ms[1], ms[2], ms[3]
     );
     Ok((errors, times))
@@ -514,10 +530,12 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
         let frame_time = median(plain_times.clone());
         let control_ratio = mean_ratio(plain_errors, &control_run.reference);
         eprintln!(
-            "{name}, {lights} light(s), plain MCVR with priorities (no cache): error ratio {control_ratio:.2} (the paper's estimate: {:.2}); {} vs {} image-equivalents",
+            "{name}, {lights} light(s), plain MCVR with priorities (no cache): error ratio {control_ratio:.2} (the paper's estimate: {:.2}); {} vs {} image-equivalents; bias {:+.2}% (plain {:+.2}%)",
             mean_ratio(&plain_run.estimated, &control_run.estimated),
             control.iteration(),
             baseline.iteration(),
+            100.0 * control_run.last_bias(),
+            100.0 * plain_run.last_bias(),
         );
         controls.push(json!({
             "dataset": name,
@@ -525,6 +543,8 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
             "error_ratio": control_ratio,
             "estimated_error_ratio": mean_ratio(&plain_run.estimated, &control_run.estimated),
             "samples_per_pixel": control.iteration(),
+            "mean_bias": control_run.last_bias(),
+            "mean_bias_plain": plain_run.last_bias(),
         }));
         let dump = |what: &str, picture: &[[f32; 3]]| -> anyhow::Result<()> {
             match options.dump {
@@ -567,7 +587,8 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
                     "{name}, {lights} light(s), priorities {priorities}, {locking_name} locking: \
                      error ratio {ratio:.2} (the paper's estimate: {estimated_ratio:.2}; last frame: plain {:.4}, irradiance {:.4}); \
                      {} entries ({shape}), {} references, hit rate {:.2}; frame {:.1} ms vs plain {:.1} ms \
-                     (render {:.1}, create {:.1}, update {:.1}, rest {:.1}); {} vs {} image-equivalents",
+                     (render {:.1}, create {:.1}, update {:.1}, rest {:.1}); {} vs {} image-equivalents; \
+                     bias {:+.2}% (plain {:+.2}%); {} radius reductions, {} validation rounds",
                     plain_errors[last],
                     errors[last],
                     stats.entries,
@@ -581,6 +602,10 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
                     split[3],
                     technique.iteration(),
                     baseline.iteration(),
+                    100.0 * runs[i].last_bias(),
+                    100.0 * plain_run.last_bias(),
+                    stats.radius_reductions,
+                    stats.validation_rounds,
                 );
                 cases.push(json!({
                     "dataset": name,
@@ -599,6 +624,10 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
                     "reference_noise": reference.relative_noise(),
                     "samples_per_pixel": technique.iteration(),
                     "samples_per_pixel_plain": baseline.iteration(),
+                    "mean_bias": runs[i].last_bias(),
+                    "mean_bias_plain": plain_run.last_bias(),
+                    "radius_reductions": stats.radius_reductions,
+                    "validation_rounds": stats.validation_rounds,
                     "ms_per_frame_split": {
                         "render": split[0], "create": split[1], "update": split[2], "rest": split[3],
                     },
@@ -614,6 +643,18 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
         ("gamma", json!(options.config.gamma)),
         ("validate_hits", json!(options.config.validate_hits)),
         (
+            "validation_share",
+            json!(options.config.validation_fraction),
+        ),
+        (
+            "validation_threshold",
+            json!(options.config.validation_threshold),
+        ),
+        (
+            "validation_samples",
+            json!(options.config.validation_samples),
+        ),
+        (
             "cached_light",
             json!(cached_light_name(options.config.cached_light)),
         ),
@@ -624,6 +665,15 @@ pub fn convergence(options: &ConvergenceBench) -> anyhow::Result<serde_json::Val
         (
             "mean_estimated_error_ratio",
             json!(mean_over(&cases, |c| c["estimated_error_ratio"].as_f64())),
+        ),
+        (
+            "largest_abs_mean_bias",
+            json!(
+                cases
+                    .iter()
+                    .filter_map(|c| c["mean_bias"].as_f64())
+                    .fold(0.0f64, |a, b| a.max(b.abs()))
+            ),
         ),
         ("cases", json!(cases)),
         ("priorities_without_cache", json!(controls)),
