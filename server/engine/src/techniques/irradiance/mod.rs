@@ -1998,33 +1998,30 @@ impl DispatchPlan {
                 list.extend_from_slice(chunk);
             }
         }
-        let create_first = infos.len() as u32;
-        for r in 0..rounds.create.min(MAX_CREATE_ROUNDS) {
-            infos.push(DispatchInfo {
+        // `n` rounds over `count` items, numbered from `round` on; the first one's slot.
+        let mut push_rounds = |n: u32, count: u32, round: u32, validate: u32| {
+            let first = infos.len() as u32;
+            infos.extend((0..n).map(|r| DispatchInfo {
                 first: 0,
-                count: rounds.pending,
-                round: r,
-                validate: 0,
-            });
-        }
-        let update_first = infos.len() as u32;
-        for r in 0..rounds.update.min(MAX_UPDATE_ROUNDS) {
-            infos.push(DispatchInfo {
-                first: 0,
-                count: rounds.block_count,
-                round: rounds.frame.wrapping_mul(MAX_UPDATE_ROUNDS) + r,
-                validate: 0,
-            });
-        }
-        let validate_first = infos.len() as u32;
-        for r in 0..rounds.validate.min(MAX_VALIDATION_ROUNDS) {
-            infos.push(DispatchInfo {
-                first: 0,
-                count: rounds.block_count,
-                round: rounds.frame.wrapping_mul(MAX_VALIDATION_ROUNDS) + r,
-                validate: 1,
-            });
-        }
+                count,
+                round: round.wrapping_add(r),
+                validate,
+            }));
+            first
+        };
+        let create_first = push_rounds(rounds.create.min(MAX_CREATE_ROUNDS), rounds.pending, 0, 0);
+        let update_first = push_rounds(
+            rounds.update.min(MAX_UPDATE_ROUNDS),
+            rounds.block_count,
+            rounds.frame.wrapping_mul(MAX_UPDATE_ROUNDS),
+            0,
+        );
+        let validate_first = push_rounds(
+            rounds.validate.min(MAX_VALIDATION_ROUNDS),
+            rounds.block_count,
+            rounds.frame.wrapping_mul(MAX_VALIDATION_ROUNDS),
+            1,
+        );
         let priority_first = infos.len() as u32;
         if rounds.priorities {
             let n = rounds.block_count as usize;
