@@ -1473,31 +1473,33 @@ impl Irradiance {
             self.block_cost = Some(smooth(self.block_cost, cost));
         }
         self.block_renders += blocks_rendered as u64;
-        if create_rounds > 0 && pending > 0 {
-            self.creation_credit -= times.create.as_secs_f64();
-            let cost = times.create.as_secs_f64() / (create_rounds * pending) as f64;
-            self.request_round_cost = Some(robust_smooth(self.request_round_cost, cost));
+        if charge_rounds(
+            &mut self.creation_credit,
+            &mut self.request_round_cost,
+            times.create,
+            create_rounds as u64 * pending as u64,
+        ) {
             self.stats.creation_rounds += create_rounds as u64;
-        } else if let Some(cost) = &mut self.request_round_cost {
-            // An estimate that keeps every round from running heals (a first dispatch that
-            // compiled the shader, a busy machine).
-            *cost *= 0.95;
         }
-        if update_rounds > 0 && cache_on {
-            self.update_credit -= times.update.as_secs_f64();
-            let cost = times.update.as_secs_f64() / update_rounds as f64;
-            self.update_round_cost = Some(robust_smooth(self.update_round_cost, cost));
+        if charge_rounds(
+            &mut self.update_credit,
+            &mut self.update_round_cost,
+            times.update,
+            if cache_on { update_rounds as u64 } else { 0 },
+        ) {
             self.stats.update_rounds += update_rounds as u64;
-        } else if let Some(cost) = &mut self.update_round_cost {
-            *cost *= 0.95;
         }
-        if validation_rounds > 0 && cache_on {
-            self.validation_credit -= times.validate.as_secs_f64();
-            let cost = times.validate.as_secs_f64() / validation_rounds as f64;
-            self.validation_round_cost = Some(robust_smooth(self.validation_round_cost, cost));
+        if charge_rounds(
+            &mut self.validation_credit,
+            &mut self.validation_round_cost,
+            times.validate,
+            if cache_on {
+                validation_rounds as u64
+            } else {
+                0
+            },
+        ) {
             self.stats.validation_rounds += validation_rounds as u64;
-        } else if let Some(cost) = &mut self.validation_round_cost {
-            *cost *= 0.95;
         }
         if self.config.priorities {
             let at = layout.priorities as usize;
@@ -1963,6 +1965,30 @@ struct PlannedRounds {
     block_count: u32,
     frame: u32,
     priorities: bool,
+}
+
+/// Charges a phase's measured time to its credit and its cost estimate per unit of work
+/// (`units`: rounds, times the requests each serves for creation); false when none ran. An
+/// estimate that keeps every round from running decays, so that it heals (a first dispatch
+/// that compiled the shader, a busy machine).
+fn charge_rounds(
+    credit: &mut f64,
+    unit_cost: &mut Option<f64>,
+    spent: Duration,
+    units: u64,
+) -> bool {
+    if units == 0 {
+        if let Some(cost) = unit_cost {
+            *cost *= 0.95;
+        }
+        return false;
+    }
+    *credit -= spent.as_secs_f64();
+    *unit_cost = Some(robust_smooth(
+        *unit_cost,
+        spent.as_secs_f64() / units as f64,
+    ));
+    true
 }
 
 /// One frame's dispatches, as the passes read them from the dispatch buffer: render chunks
