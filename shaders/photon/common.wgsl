@@ -94,6 +94,15 @@ struct PhotonUniforms {
     inline_slots: u32,
     chunks_per_pass: u32,
     chunk_counts_at: u32,
+    // The per-sample photon sums (`sample_sums`): lattice samples kept per pixel (0: off, the
+    // segment sums each photon's weighted term), the generation an entry must carry to be
+    // valid (each full gather starts a new one), and whether this update's changes were
+    // already added to the valid entries (scatter_sums; 0: the gather adds them from the
+    // change grid at the dirty samples it visits).
+    sample_cache_samples: u32,
+    cache_generation: u32,
+    sums_applied: u32,
+    pad_cache: u32,
     // Progressive radius reduction (Knaus & Zwicker 2011): the photons of pass i are gathered
     // with their own radius r_i <= radius (the grid's cell edge), r_i³ = r_0³ · Π_{k<i} (k + α)
     // / (k + 1). Entry i / 2 holds pass i's (r_i², (r_0 / r_i)³) in .xy (even i) or .zw (odd
@@ -175,7 +184,8 @@ struct PhotonChange {
 
 // A segment's gather between rounds: its radiance so far (fixed point, see fixed_hi), the
 // current sample's lattice index k, the transmittance and historygram so far, and the place in
-// the 27-cell neighbourhood (cell, see photon/gather.wgsl; rank within that cell).
+// the 27-cell neighbourhood (cell, see photon/gather.wgsl; rank within that cell). With
+// per-sample sums, the current sample's sum so far waits in its own entry of sample_sums.
 struct GatherState {
     color_lo: vec3<u32>,
     k: f32,
@@ -285,6 +295,13 @@ const SPATIAL_CELLS: u32 = 2u;
 // chunk_counts_at on per pass the chunks taken (more than chunks_per_pass: a path found
 // none and was cut short; the host sees it).
 @group(0) @binding(17) var<storage, read_write> chunks: array<atomic<u32>>;
+// The per-sample photon sums (sample_cache_samples > 0): per pixel and lattice index k, the sum
+// of fixed(power · photon_lead() · phase · kernel) over the photons within the radius
+// (64-bit fixed point, lo then hi words per channel) and the generation it was formed in
+// (SAMPLE_WORDS words). A segment is then Σ_k fixed(f32(P_k) · transport(T_k, σ_k)), so a
+// segment whose opacity changed recomposites from its samples' sums instead of gathering its
+// photons again, and a changed photon updates the sums it reaches (integer sums, exact).
+@group(0) @binding(18) var<storage, read_write> sample_sums: array<atomic<u32>>;
 
 const CHUNK_SLOTS: u32 = 4u;
 const CHUNK_NONE: u32 = 0xffffffffu;
@@ -293,6 +310,86 @@ const SLOT_NONE: u32 = 0xffffffffu;
 const SLOT_WORDS: u32 = 8u;
 const SEGMENT_UNTOUCHED: u32 = 0u;
 const SEGMENT_TOUCHED: u32 = 1u;
+
+const SAMPLE_WORDS: u32 = 7u;
+const SAMPLE_NONE: u32 = 0xffffffffu;
+
+// The first word of the photon sum of pixel's lattice sample k (SAMPLE_NONE: not kept; the
+// host keeps as many per pixel as a view ray through the box can hold, so with per-sample sums
+// on every sample has one).
+fn sample_entry(pixel: u32, k: f32) -> u32 {
+    if (k >= f32(photon.sample_cache_samples)) {
+        return SAMPLE_NONE;
+    }
+    return (pixel * photon.sample_cache_samples + u32(k)) * SAMPLE_WORDS;
+}
+
+fn sample_valid(entry: u32) -> bool {
+    return entry != SAMPLE_NONE && atomicLoad(&sample_sums[entry + 6u]) == photon.cache_generation;
+}
+
+fn sample_read(entry: u32) -> FixedSum {
+    if (entry == SAMPLE_NONE) {
+        return FixedSum(vec3<u32>(0u), vec3<u32>(0u));
+    }
+    return FixedSum(
+        vec3<u32>(atomicLoad(&sample_sums[entry]), atomicLoad(&sample_sums[entry + 1u]), atomicLoad(&sample_sums[entry + 2u])),
+        vec3<u32>(atomicLoad(&sample_sums[entry + 3u]), atomicLoad(&sample_sums[entry + 4u]), atomicLoad(&sample_sums[entry + 5u])),
+    );
+}
+
+// Keeps the sum (not its generation: a partial sum of a gather that resumes later keeps the
+// validity the entry had when the sample began).
+fn sample_keep(entry: u32, sum: FixedSum) {
+    if (entry == SAMPLE_NONE) {
+        return;
+    }
+    for (var c = 0u; c < 3u; c++) {
+        atomicStore(&sample_sums[entry + c], sum.lo[c]);
+        atomicStore(&sample_sums[entry + 3u + c], sum.hi[c]);
+    }
+}
+
+fn sample_write(entry: u32, sum: FixedSum) {
+    sample_keep(entry, sum);
+    atomicStore(&sample_sums[entry + 6u], photon.cache_generation);
+}
+
+fn sample_forget(entry: u32) {
+    if (entry != SAMPLE_NONE) {
+        atomicStore(&sample_sums[entry + 6u], 0u);
+    }
+}
+
+// Adds a 64-bit fixed-point sum (wrapping) to the entry's, atomically per word with a carry.
+fn sample_add(entry: u32, sum: FixedSum) {
+    for (var c = 0u; c < 3u; c++) {
+        let lo = sum.lo[c];
+        let hi = sum.hi[c];
+        if ((lo | hi) == 0u) {
+            continue;
+        }
+        let old = atomicAdd(&sample_sums[entry + c], lo);
+        let carry = select(0u, 1u, old + lo < old);
+        atomicAdd(&sample_sums[entry + 3u + c], hi + carry);
+    }
+}
+
+// The factor a photon's term starts with: the sample's weight where segments sum weighted
+// terms, the kernel's normalisation and the fixed point's scale where samples keep sums.
+fn photon_lead(weight: f32) -> f32 {
+    if (photon.sample_cache_samples > 0u) {
+        return photon.kernel_norm * FIXED_ONE;
+    }
+    return weight;
+}
+
+// What a sample's photon sum is weighted by in a segment (sample_weight without the kernel's
+// normalisation, which the sum holds): the transmittance to it and the integral of the
+// extinction over its step.
+fn transport(transmit: f32, sigma: f32) -> f32 {
+    return transmit * (1.0 - exp(-sigma * photon.gather_step)) / sigma;
+}
 
 // The delta-scatter slot of segment id (SLOT_NONE: none).
 fn segment_slot(id: u32) -> u32 {

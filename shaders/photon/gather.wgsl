@@ -113,7 +113,12 @@ fn gather_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
             }
             // Unless the change list overflowed, only the changed photons' terms differ.
             delta = stale && atomicLoad(&counters[COUNTER_CHANGES]) <= photon.change_capacity;
-            if (delta) {
+            if (delta && photon.sample_cache_samples > 0u) {
+                // With per-sample sums the segment recomposites from them (counted as updated
+                // by the changes alone: no photon of the records is visited).
+                atomicAdd(&counters[COUNTER_DELTA], 1u);
+                delta = false;
+            } else if (delta) {
                 start.color_lo = old.color_lo;
                 start.color_hi = old.color_hi;
                 atomicAdd(&counters[COUNTER_DELTA], 1u);
@@ -154,6 +159,29 @@ fn defer_segment(entry: u32, st: GatherState, segment_count: u32) {
     gather_list[next * segment_count + atomicAdd(&counters[COUNTER_LIST + next], 1u)] = entry;
 }
 
+// GatherState.cell past the 27 neighbours: the segment's samples are done, and the march goes
+// on past its transmittance cut-off only to forget the photon sums of dirty samples
+// (forget_dirty_sums).
+const FORGET_TAIL: u32 = 29u;
+// GatherState.cell of a sample whose terms are all known without visiting a cell (its kept
+// sum, or no change within the radius).
+const SKIP_CELLS: u32 = 30u;
+
+// With per-sample sums, the grid a sample's gather visits: the changes' where its kept sum is
+// valid in an update, else the records' (every photon afresh). Decided alike when a sample
+// begins and when its gather resumes in a later round (a partial sum leaves the generation
+// as it was).
+fn sample_grid(kept: u32) -> u32 {
+    return select(GRID_RECORDS, GRID_CHANGES, photon.mode == MODE_UPDATE && sample_valid(kept));
+}
+
+// With per-sample sums, whether the samples a gather skips must forget their sums: the update's
+// changes were not added to them (sums_applied = 0), and a dirty sample may hold a changed
+// photon's old term.
+fn forget_dirty_sums() -> bool {
+    return photon.sample_cache_samples > 0u && photon.mode == MODE_UPDATE && photon.sums_applied == 0u;
+}
+
 @compute @workgroup_size(64)
 fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let invocation = linear_index(gid, groups);
@@ -164,10 +192,11 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
     }
     let entry = gather_list[photon.round_input * segment_count + slot];
     let id = entry & ~DELTA_SEGMENT;
-    // A delta segment visits the change grid, a fresh one the records'.
-    let grid = select(GRID_RECORDS, GRID_CHANGES, id != entry);
-    let cells_base = grid_base(grid);
-    let slots_base = sorted_base(grid);
+    let cached = photon.sample_cache_samples > 0u;
+    // A delta segment visits the change grid, a fresh one the records'. With per-sample sums
+    // each sample chooses (sample_grid), and its sum so far waits in its entry between
+    // rounds.
+    let segment_grid = select(GRID_RECORDS, GRID_CHANGES, id != entry);
     let pixel = id / photon.segments;
     let dir = pixel_ray(pixel);
     let out_dir = -dir;
@@ -182,14 +211,23 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
     // This invocation's loop iterations; each loop counts its own so that the sum stays
     // within the budget whatever the nesting.
     var used = 0u;
-    // The current sample (recomputed when resuming inside one).
+    // The current sample (recomputed when resuming inside one): position, extinction, the
+    // factor its photons' terms start with, its kept sum's entry, the grid it visits, and the
+    // sum its terms join (the segment's, or with per-sample sums the sample's).
     var x = scene.eye + dir * (hit.x + (st.k + jitter) * step);
     var sigma = 0.0;
-    var weight = 0.0;
+    var lead = 0.0;
     var centre = grid_cell3(x);
+    var kept = sample_entry(pixel, st.k);
+    var grid = segment_grid;
+    var acc = FixedSum(st.color_lo, st.color_hi);
     if (st.cell < NEXT_SAMPLE) {
         sigma = classify(data_at(x)).a * scene.density_scale;
-        weight = sample_weight(st.transmit, sigma);
+        lead = photon_lead(sample_weight(st.transmit, sigma));
+        if (cached) {
+            grid = sample_grid(kept);
+            acc = sample_read(kept);
+        }
     }
     loop {
         if (used >= budget) {
@@ -197,13 +235,31 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
             return;
         }
         used += 1u;
+        if (st.cell == FORGET_TAIL) {
+            let t = hit.x + (st.k + jitter) * step;
+            if (t >= bounds.y) {
+                break;
+            }
+            if (t >= bounds.x && dirty(scene.eye + dir * t)) {
+                sample_forget(sample_entry(pixel, st.k));
+            }
+            st.k += 1.0;
+            continue;
+        }
         if (st.cell == NEXT_SAMPLE) {
             let t = hit.x + (st.k + jitter) * step;
             if (t < bounds.x) {
                 st.k += 1.0;
                 continue;
             }
-            if (t >= bounds.y || st.transmit < SEGMENT_T_CUTOFF) {
+            if (t >= bounds.y) {
+                break;
+            }
+            if (st.transmit < SEGMENT_T_CUTOFF) {
+                if (forget_dirty_sums()) {
+                    st.cell = FORGET_TAIL;
+                    continue;
+                }
                 break;
             }
             x = scene.eye + dir * t;
@@ -212,21 +268,36 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
             st.hist_lo |= bit.x;
             st.hist_hi |= bit.y;
             sigma = classify(v).a * scene.density_scale;
+            kept = sample_entry(pixel, st.k);
             if (sigma <= 0.0) {
+                if (forget_dirty_sums() && dirty(x)) {
+                    sample_forget(kept);
+                }
                 st.k += 1.0;
                 continue;
             }
-            if (grid == GRID_CHANGES && !dirty(x)) {
+            var visit = true;
+            if (cached) {
+                // Fresh where the sum is not kept; else the kept sum, plus the changes within
+                // the radius where the scatter did not add them.
+                grid = sample_grid(kept);
+                if (grid == GRID_CHANGES) {
+                    acc = sample_read(kept);
+                    visit = photon.sums_applied == 0u && dirty(x);
+                } else {
+                    acc = FixedSum(vec3<u32>(0u), vec3<u32>(0u));
+                }
+            } else if (segment_grid == GRID_CHANGES && !dirty(x)) {
                 // No changed photon within the radius: the sample's terms are as before.
-                st.transmit *= exp(-sigma * step);
-                st.k += 1.0;
-                continue;
+                visit = false;
             }
-            weight = sample_weight(st.transmit, sigma);
+            lead = photon_lead(sample_weight(st.transmit, sigma));
             centre = grid_cell3(x);
-            st.cell = 0u;
             st.rank = 0u;
+            st.cell = select(SKIP_CELLS, 0u, visit);
         }
+        let cells_base = grid_base(grid);
+        let slots_base = sorted_base(grid);
         for (; st.cell < 27u; st.cell++) {
             used += 1u;
             let n = centre + vec3<i32>(i32(st.cell % 3u), i32(st.cell / 3u % 3u), i32(st.cell / 9u)) - 1;
@@ -277,22 +348,39 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
                     }
                     // A replaced photon's two terms share this factor (same position and
                     // direction), so they are the very terms two separate visits would give.
-                    let s = weight * phase_hg(dot(direction, out_dir), scene.g) * (1.0 - d2 / kernel.x) * kernel.y;
-                    var sum = accumulate(FixedSum(st.color_lo, st.color_hi), power * s, kind == CHANGE_SUBTRACT);
+                    let s = lead * phase_hg(dot(direction, out_dir), scene.g) * (1.0 - d2 / kernel.x) * kernel.y;
+                    acc = accumulate(acc, power * s, kind == CHANGE_SUBTRACT);
                     if (kind == CHANGE_REPLACE) {
-                        sum = accumulate(sum, old_power * s, true);
+                        acc = accumulate(acc, old_power * s, true);
                     }
-                    st.color_lo = sum.lo;
-                    st.color_hi = sum.hi;
                 }
             }
             used += stop - start;
             if (stop < end) {
                 st.rank = stop - first;
+                if (cached) {
+                    sample_keep(kept, acc);
+                } else {
+                    st.color_lo = acc.lo;
+                    st.color_hi = acc.hi;
+                }
                 defer_segment(entry, st, segment_count);
                 return;
             }
             st.rank = 0u;
+        }
+        if (cached) {
+            // The sample's sum is kept, and joins the segment's weighted by its transport.
+            if (st.cell == 27u) {
+                sample_write(kept, acc);
+            }
+            let radiance = fixed_to_f32(acc.lo, acc.hi) * (transport(st.transmit, sigma) * FIXED_ONE);
+            let sum = accumulate(FixedSum(st.color_lo, st.color_hi), radiance, false);
+            st.color_lo = sum.lo;
+            st.color_hi = sum.hi;
+        } else {
+            st.color_lo = acc.lo;
+            st.color_hi = acc.hi;
         }
         st.transmit *= exp(-sigma * step);
         st.k += 1.0;

@@ -341,6 +341,77 @@ fn scatter_changes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     add_to_slot(current, sum);
 }
 
+// With per-sample photon sums (sample_cache_samples > 0; photon/common.wgsl, sample_sums):
+// one invocation per change-list entry adds the change's term to the sum of every lattice
+// sample within its radius that holds a valid sum (the gather's term without the sample's
+// weight: the same expressions on the same bits), so that the gather recomposites the
+// segments the changes reach from their sums alone. Where `scatter_touch` found a change that
+// reaches too many pixels, none is added (the gather then adds the changes at the dirty
+// samples); where this pass finds one, the sums it added are incomplete and the host starts a
+// new generation of them.
+@compute @workgroup_size(64)
+fn scatter_sums(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let index = linear_index(gid, groups);
+    if (index >= change_entries() || atomicLoad(&counters[COUNTER_SCATTER_OVERFLOW]) != 0u) {
+        return;
+    }
+    let change = changes[index];
+    let p = change.position;
+    let kernel = pass_kernel(change.pass_index);
+    let r2 = kernel.x;
+    let step = photon.gather_step;
+    let box = change_pixels(p);
+    if (!box.fits) {
+        return;
+    }
+    let e = p - scene.eye;
+    let e2 = dot(e, e);
+    let reach2 = ball_reach2(e2);
+    let lead = photon_lead(0.0);
+    for (var py = box.first.y; py <= box.last.y; py++) {
+        for (var px = box.first.x; px <= box.last.x; px++) {
+            let pixel = u32(py) * scene.width + u32(px);
+            let ray = ray_near_change(pixel, e, e2, reach2);
+            if (!ray.near) {
+                continue;
+            }
+            let dir = ray.dir;
+            let hit = ray.hit;
+            let half = sqrt(reach2 - ray.perp2);
+            let jitter = pixel_jitter(pixel);
+            let phase = phase_hg(dot(change.direction, -dir), scene.g);
+            let k_first = max(0.0, floor((ray.tc - half - hit.x) / step - jitter) - 1.0);
+            let k_last = ceil((ray.tc + half - hit.x) / step - jitter) + 1.0;
+            for (var k = k_first; k <= k_last; k += 1.0) {
+                let t = hit.x + (k + jitter) * step;
+                if (t < hit.x) {
+                    continue;
+                }
+                if (t >= hit.y) {
+                    break;
+                }
+                let x = scene.eye + dir * t;
+                let d = x - p;
+                let d2 = dot(d, d);
+                if (d2 >= r2) {
+                    continue;
+                }
+                let kept = sample_entry(pixel, k);
+                if (!sample_valid(kept)) {
+                    continue;
+                }
+                // The gather's term (photon/gather.wgsl), factor for factor.
+                let factor = lead * phase * (1.0 - d2 / r2) * kernel.y;
+                var sum = accumulate(FixedSum(vec3<u32>(0u), vec3<u32>(0u)), change.power * factor, change.kind == CHANGE_SUBTRACT);
+                if (change.kind == CHANGE_REPLACE) {
+                    sum = accumulate(sum, change.old_power * factor, true);
+                }
+                sample_add(kept, sum);
+            }
+        }
+    }
+}
+
 @compute @workgroup_size(64)
 fn scatter_apply(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let slot = linear_index(gid, groups);

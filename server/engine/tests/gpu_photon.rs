@@ -253,23 +253,51 @@ fn incremental_tf_edits_equal_a_full_recompute_bit_for_bit() {
             false,
         ),
     ];
-    // The default (dirty cells, delta scatter), the same with every delta segment gathered from
-    // the change grid, and the other segment tests.
+    // The default (dirty cells, per-sample photon sums that the changes are scattered into);
+    // the same where the sums take the changes from the gather at the dirty samples (a loop
+    // budget too small for the scatter); segments that sum every photon's weighted term, with
+    // the delta scatter and without it (every delta segment gathered from the change grid);
+    // and the other segment tests, with sums and without.
+    let dirty = params(Invalidation::DirtyCells);
     let configurations = [
-        ("dirty cells", params(Invalidation::DirtyCells)),
+        ("dirty cells", dirty),
+        (
+            "dirty cells, sums from the gather",
+            PhotonParams {
+                gather_budget: 100,
+                ..dirty
+            },
+        ),
+        (
+            "dirty cells, segment sums",
+            PhotonParams {
+                sample_cache_bytes: 0,
+                ..dirty
+            },
+        ),
         (
             "dirty cells, no scatter",
             PhotonParams {
                 scatter_bytes: 0,
-                ..params(Invalidation::DirtyCells)
+                ..dirty
             },
         ),
         ("spatial 3x64", params(Invalidation::SpatialHistogram)),
+        (
+            "spatial 3x64, segment sums",
+            PhotonParams {
+                sample_cache_bytes: 0,
+                ..params(Invalidation::SpatialHistogram)
+            },
+        ),
         ("any photon", params(Invalidation::AnyPhoton)),
     ];
     for (spatial, p) in configurations {
         let mut s = cornell_scene(size, cornell_with(&[]));
         let mut photon = converged(&volume, &s, p);
+        // Every configuration but those that turn them off keeps per-sample sums.
+        let sums = p.sample_cache_bytes > 0;
+        assert_eq!(photon.budget().sample_cache_samples > 0, sums, "{spatial}");
         for (name, tf, local) in &edits {
             // The paths whose historygram meets the whole query: what the paper retraces.
             let query = voxlight_engine::tf::query_historygram(&s.tf, tf);
@@ -321,8 +349,10 @@ fn incremental_tf_edits_equal_a_full_recompute_bit_for_bit() {
                     "{name}: no segment updated by the changes"
                 );
                 assert_eq!(report.segments_delta, report.segments_recomputed, "{name}");
-                // The scatter takes them all (it has room), or none where it is off.
-                let scattered = if p.scatter_bytes > 0 {
+                // The scatter takes them all (it has room; with per-sample sums it needs no
+                // slots), or none where it is off or where every change is too wide for it
+                // (the loop budget of 100).
+                let scattered = if (sums || p.scatter_bytes > 0) && p.gather_budget == 0 {
                     report.segments_delta
                 } else {
                     0
@@ -651,15 +681,32 @@ fn delta_scatter_capacity_and_overflow_still_equal_a_full_recompute() {
     // The slot map (4 bytes per segment) and room for about a hundred segments (a slot is 22
     // words here): fewer than the edit's (~250 at the default radius of 1.5 voxels), but
     // enough that the changes (about one per segment) are worth scattering.
+    // Slots are the delta scatter's where segments sum every photon's weighted term.
     let few_slots = PhotonParams {
         scatter_bytes: segments * 4 + 100 * 4 * 22,
+        sample_cache_bytes: 0,
         ..defaults
     };
     let overflowing = PhotonParams {
         gather_budget: 100,
         ..defaults
     };
-    for (name, p) in [("few slots", few_slots), ("overflow", overflowing)] {
+    // With per-sample sums: the marks find the wide changes and none is scattered (above), or,
+    // without the marks, the scatter finds them after adding some, and the sums start anew.
+    let overflowing_unmarked = PhotonParams {
+        invalidation: Invalidation::SpatialHistogram,
+        ..overflowing
+    };
+    let segment_sums = PhotonParams {
+        sample_cache_bytes: 0,
+        ..overflowing
+    };
+    for (name, p) in [
+        ("few slots", few_slots),
+        ("overflow", overflowing),
+        ("overflow without marks", overflowing_unmarked),
+        ("overflow, segment sums", segment_sums),
+    ] {
         let mut s = base.clone();
         let mut photon = converged(&volume, &s, p);
         let tf = cornell_with(&[SPHERE_RED]);
@@ -678,6 +725,16 @@ fn delta_scatter_capacity_and_overflow_still_equal_a_full_recompute() {
         } else {
             assert_eq!(report.segments_scattered, 0, "{name}: the scatter was used");
         }
+        // A second edit starts from what the first left in the sums.
+        let tf = cornell_with(&[SPHERE_GREEN, TALL_BLOCK_HALF]);
+        edit_equals_full(
+            &mut photon,
+            &volume,
+            &mut s,
+            tf,
+            p,
+            &format!("{name}, again"),
+        );
     }
 }
 
@@ -863,6 +920,80 @@ fn local_edits_equal_full<const N: usize>(
             "edit {i} redid every path: {report:?}"
         );
     }
+}
+
+/// Per-sample photon sums that take an update's changes from its gather (at the dirty samples of
+/// the segments it recomposites), not from the scatter, stay exact over edits that hide samples
+/// and show them again: a sample whose opacity fell to zero, or that fell past its segment's
+/// transmittance cut-off, forgets its sum when a change lies near it, so that a later edit
+/// gathers it afresh instead of reading a sum that missed the change. The scatter's wide-change
+/// limit, met after it added some changes, starts a new generation of sums instead.
+#[test]
+fn per_sample_sums_stay_exact_when_samples_hide_and_show_again() {
+    let volume = cornell_volume(32);
+    let p = params(Invalidation::DirtyCells);
+    let hide_and_show = || {
+        [
+            cornell_with(&[TALL_BLOCK_GONE]),
+            cornell_with(&[]),
+            cornell_with(&[TALL_BLOCK_HALF]),
+            cornell_with(&[]),
+            cornell_with(&[TALL_BLOCK_HALF]),
+            cornell_with(&[SPHERE_RED, TALL_BLOCK_HALF]),
+        ]
+    };
+    let mut s = cornell_scene(40, cornell_with(&[]));
+    // Dense enough that the blocks end a segment's march (transmittance below its cut-off)
+    // within a few samples, fewer at full opacity than at half.
+    s.params.density_scale = 100.0;
+    let mut photon = converged(&volume, &s, p);
+    assert!(photon.budget().sample_cache_samples > 0);
+    photon.sum_changes_in_gather();
+    local_edits_equal_full(&mut photon, &volume, &mut s, hide_and_show(), p);
+    // Without the dirty cells' marks the scatter adds the changes (they are few for the
+    // segments the spatial historygram lists) until it meets one too wide for its loop budget.
+    for budget in [150, 400] {
+        let p = PhotonParams {
+            gather_budget: budget,
+            ..params(Invalidation::SpatialHistogram)
+        };
+        let mut s = cornell_scene(40, cornell_with(&[]));
+        let mut photon = converged(&volume, &s, p);
+        local_edits_equal_full(&mut photon, &volume, &mut s, hide_and_show(), p);
+    }
+}
+
+/// After an update starts a new generation of per-sample sums, a segment whose opacity did not
+/// change holds no valid sums and gathers its samples afresh: from a records' grid rebuilt for
+/// the photons the update moved. Here the camera sees only the left half of the box, so an
+/// opacity edit of the sphere (at the right; no other material's values interpolate to its)
+/// moves photons without changing any segment's opacity.
+#[test]
+fn segments_gathered_afresh_after_the_sums_start_anew_read_a_current_grid() {
+    let volume = cornell_volume(32);
+    // A loop budget too small for some changes: the scatter starts the sums anew.
+    let p = PhotonParams {
+        gather_budget: 150,
+        ..params(Invalidation::SpatialHistogram)
+    };
+    let mut s = cornell_scene(40, cornell_with(&[]));
+    s.camera = Camera {
+        eye: [-0.3, 0.0, 2.6],
+        target: [-0.3, 0.0, 0.0],
+        up: [0.0, 1.0, 0.0],
+        fov_deg: 8.0,
+    };
+    let mut photon = converged(&volume, &s, p);
+    let seen = cornell_with(&[TALL_BLOCK_HALF]);
+    edit_equals_full(&mut photon, &volume, &mut s, seen, p, "tall block half");
+    let unseen = cornell_with(&[TALL_BLOCK_HALF, ("sphere", Set::Opacity(0.3))]);
+    let report = edit_equals_full(&mut photon, &volume, &mut s, unseen, p, "sphere thinner");
+    assert!(report.paths_retraced > 0, "{report:?}");
+    assert!(report.segments_delta > 0, "{report:?}");
+    assert_eq!(
+        report.segments_delta, report.segments_recomputed,
+        "a segment's opacity changed: {report:?}"
+    );
 }
 
 /// Issue 25's consistency machinery under updates: long paths with Russian roulette (up to 12

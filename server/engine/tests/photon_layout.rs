@@ -9,8 +9,8 @@ use voxlight_engine::techniques::photon::gpu::{
     COUNTER_CHANGES, COUNTER_DELTA, COUNTER_LIST, COUNTER_RECOLOURED, COUNTER_RETRACED,
     COUNTER_SCATTER, COUNTER_SCATTER_OVERFLOW, COUNTER_SEGMENTS, COUNTER_SPATIAL, COUNTER_TOUCH,
     COUNTER_WORDS, GRID_CHANGES, GRID_RECORDS, GatherState, MODE_FULL, MODE_UPDATE, PhotonChange,
-    PhotonEmitter, PhotonPath, PhotonRecord, PhotonUniforms, SLOT_WORDS, SPATIAL_AXES,
-    SPATIAL_CELLS, SPATIAL_NONE, Segment,
+    PhotonEmitter, PhotonPath, PhotonRecord, PhotonUniforms, SAMPLE_WORDS, SLOT_WORDS,
+    SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
 };
 
 fn assert_layout(module: &naga::Module, name: &str, size: usize, fields: &[(&str, usize)]) {
@@ -60,7 +60,8 @@ fn photon_structs_match_wgsl() {
                 opacity_query_lo, opacity_query_hi, grid_pass, change_capacity,
                 record_capacity, collision_query_lo, collision_query_hi, scatter_capacity,
                 scatter_samples, census, round_first, roulette_survival, roulette_from,
-                path_slots, inline_slots, chunks_per_pass, chunk_counts_at, pass_kernels),
+                path_slots, inline_slots, chunks_per_pass, chunk_counts_at, sample_cache_samples,
+                cache_generation, sums_applied, pad_cache, pass_kernels),
         );
         assert_layout(
             &module,
@@ -138,6 +139,7 @@ fn photon_constants_match_wgsl() {
         ("COUNTER_TOUCH", COUNTER_TOUCH as u32),
         ("COUNTER_RECOLOURED", COUNTER_RECOLOURED as u32),
         ("SLOT_WORDS", SLOT_WORDS as u32),
+        ("SAMPLE_WORDS", SAMPLE_WORDS as u32),
         ("GRID_RECORDS", GRID_RECORDS),
         ("GRID_CHANGES", GRID_CHANGES),
         ("CHANGE_ADD", CHANGE_ADD),

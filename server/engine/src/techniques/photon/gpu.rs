@@ -3,7 +3,7 @@
 //! (`photon/grid.wgsl`: clear, count, scan, scatter; of the records or of an update's changes),
 //! gathering + compositing (`photon/gather.wgsl`: mark, gather in rounds, composite) and the
 //! delta scatter of an update's changes (`photon/scatter.wgsl`: touch, weights, changes,
-//! apply, fallback). All share one binding layout (`BINDINGS`, declared once in
+//! apply, fallback; with per-sample photon sums, sums). All share one binding layout (`BINDINGS`, declared once in
 //! `photon/common.wgsl`) and the `#[repr(C)]` records below.
 
 use bytemuck::{Pod, Zeroable};
@@ -54,6 +54,12 @@ pub struct PhotonUniforms {
     pub inline_slots: u32,
     pub chunks_per_pass: u32,
     pub chunk_counts_at: u32,
+    /// Per-sample photon sums (`sample_sums`): lattice samples kept per pixel (0: off), the
+    /// generation a valid entry carries, whether the update's changes were added to them.
+    pub sample_cache_samples: u32,
+    pub cache_generation: u32,
+    pub sums_applied: u32,
+    pub pad_cache: u32,
     /// Per pass (r_i², (r_0 / r_i)³), two passes per entry (`pass_kernels`).
     pub pass_kernels: [[f32; 4]; PASS_KERNEL_ENTRIES],
 }
@@ -163,6 +169,8 @@ pub const COUNTER_SCATTER: usize = 13;
 pub const COUNTER_SCATTER_OVERFLOW: usize = 14;
 pub const COUNTER_TOUCH: usize = 15;
 pub const COUNTER_RECOLOURED: usize = 16;
+/// Words per kept sample sum (`SAMPLE_WORDS`: lo and hi words of three channels, generation).
+pub const SAMPLE_WORDS: usize = 7;
 /// Words per delta-scatter slot (photon/scatter.wgsl).
 pub const SLOT_WORDS: usize = 8;
 /// `grid_pass` uniform: which grid the grid kernels build.
@@ -180,14 +188,14 @@ pub const SPATIAL_CELLS: u32 = 2;
 /// Workgroup width of the 1D photon kernels.
 pub const WORKGROUP: u32 = 64;
 
-/// What bindings 0–17 hold (every pass of shaders/photon/ declares them all, in common.wgsl):
+/// What bindings 0–18 hold (every pass of shaders/photon/ declares them all, in common.wgsl):
 /// scene, volume, TF, `PhotonUniforms`, the emitters, then the technique's buffers.
-pub const BINDINGS: [Binding; 18] = {
+pub const BINDINGS: [Binding; 19] = {
     use Binding::*;
     [
         Uniform, Volume, Read, Uniform, Read, ReadWrite, ReadWrite, ReadWrite, ReadWrite,
         ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite,
-        ReadWrite,
+        ReadWrite, ReadWrite,
     ]
 };
 
@@ -216,6 +224,7 @@ pub struct PhotonPass {
     pub scatter_changes: wgpu::ComputePipeline,
     pub scatter_apply: wgpu::ComputePipeline,
     pub scatter_fallback: wgpu::ComputePipeline,
+    pub scatter_sums: wgpu::ComputePipeline,
 }
 
 /// The buffers and texture of one session.
@@ -238,6 +247,7 @@ pub struct PhotonBindings<'a> {
     pub accum: &'a wgpu::Buffer,
     pub counters: &'a wgpu::Buffer,
     pub chunks: &'a wgpu::Buffer,
+    pub sample_sums: &'a wgpu::Buffer,
 }
 
 impl PhotonPass {
@@ -269,6 +279,7 @@ impl PhotonPass {
             scatter_changes: pipeline("photon scatter changes", &scatter, "scatter_changes"),
             scatter_apply: pipeline("photon scatter apply", &scatter, "scatter_apply"),
             scatter_fallback: pipeline("photon scatter fallback", &scatter, "scatter_fallback"),
+            scatter_sums: pipeline("photon scatter sums", &scatter, "scatter_sums"),
             layout,
         }
     }
@@ -293,6 +304,7 @@ impl PhotonPass {
             buffer(15, b.changes),
             buffer(16, b.scatter),
             buffer(17, b.chunks),
+            buffer(18, b.sample_sums),
         ];
         self.layout.bind_group(gpu, "photon", &entries)
     }
