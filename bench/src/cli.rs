@@ -208,6 +208,10 @@ pub struct TfEditArgs {
     /// redo and the highest speedup that leaves.
     #[arg(long)]
     pub census: bool,
+    /// `photon`: segments sum every photon's weighted term (the formulation without per-sample
+    /// photon sums), to compare the two in one build.
+    #[arg(long)]
+    pub segment_sums: bool,
     /// `irradiance`: frames that build the cache before each edit.
     #[arg(long, default_value_t = 120)]
     pub build_frames: u32,
@@ -484,6 +488,7 @@ fn tf_edit(a: &TfEditArgs, data: Option<&Path>) -> anyhow::Result<serde_json::Va
         segments: a.segments.max(1),
         repeats: a.repeats.max(1),
         census: a.census,
+        segment_sums: a.segment_sums,
     };
     match a.technique {
         TfEditTechnique::Photon => engine::tf_edit(&scenarios),

@@ -109,6 +109,8 @@ pub struct TfEditBench<'a> {
     pub repeats: u32,
     /// `photon`: measure the work census (`tf_edit_census`) instead of the update's speed.
     pub census: bool,
+    /// `photon`: without per-sample photon sums (`PhotonParams::sample_cache_bytes` 0).
+    pub segment_sums: bool,
 }
 
 /// One TF edit of a scenario: a name and the edited TF.
@@ -436,6 +438,7 @@ pub fn tf_edit(options: &TfEditBench) -> anyhow::Result<serde_json::Value> {
                 "query_bins": query.count_ones(),
                 "records_changed": report.records_changed,
                 "segment_test": params.invalidation.name(),
+                "per_sample_sums": incremental.budget().sample_cache_samples > 0,
                 "other_segment_tests": variant_rows,
             }));
         }
@@ -477,6 +480,11 @@ fn photon_params(options: &TfEditBench) -> voxlight_engine::techniques::photon::
         bounces: options.bounces,
         segments: options.segments,
         invalidation: Invalidation::DirtyCells,
+        sample_cache_bytes: if options.segment_sums {
+            0
+        } else {
+            PhotonParams::default().sample_cache_bytes
+        },
         ..PhotonParams::default()
     }
 }
