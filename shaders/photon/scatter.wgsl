@@ -202,6 +202,40 @@ fn ray_near_change(pixel: u32, e: vec3<f32>, e2: f32, reach2: f32) -> RayNearCha
     return RayNearChange(dir, hit, tc, perp2, hit.x < hit.y);
 }
 
+// A pixel's ray as a change's scatter visits it: the ray near the change, the pixel's jitter,
+// the phase towards the eye, and the lattice indices that can lie within reach (none where
+// the ray passes too far).
+struct ChangeRay {
+    near: RayNearChange,
+    jitter: f32,
+    phase: f32,
+    k_first: f32,
+    k_last: f32,
+}
+
+fn change_ray(pixel: u32, change: PhotonChange, e: vec3<f32>, e2: f32, reach2: f32) -> ChangeRay {
+    let ray = ray_near_change(pixel, e, e2, reach2);
+    var out = ChangeRay(ray, 0.0, 0.0, 0.0, -1.0);
+    if (!ray.near) {
+        return out;
+    }
+    let half = sqrt(reach2 - ray.perp2);
+    let step = photon.gather_step;
+    out.jitter = pixel_jitter(pixel);
+    out.phase = phase_hg(dot(change.direction, -ray.dir), scene.g);
+    out.k_first = max(0.0, floor((ray.tc - half - ray.hit.x) / step - out.jitter) - 1.0);
+    out.k_last = ceil((ray.tc + half - ray.hit.x) / step - out.jitter) + 1.0;
+    return out;
+}
+
+// Lattice sample k of the ray, as the gather places it: its distance t along the ray and its
+// squared distance from p.
+fn change_sample(ray: ChangeRay, k: f32, p: vec3<f32>) -> vec2<f32> {
+    let t = ray.near.hit.x + (k + ray.jitter) * photon.gather_step;
+    let d = scene.eye + ray.near.dir * t - p;
+    return vec2<f32>(t, dot(d, d));
+}
+
 // The change-list entries the update listed (past the list's capacity they were dropped).
 fn change_entries() -> u32 {
     return min(atomicLoad(&counters[COUNTER_CHANGES]), photon.change_capacity);
@@ -258,7 +292,6 @@ fn scatter_changes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let p = change.position;
     let kernel = pass_kernel(change.pass_index);
     let r2 = kernel.x;
-    let step = photon.gather_step;
     let box = change_pixels(p);
     if (!box.fits) {
         return;
@@ -273,35 +306,25 @@ fn scatter_changes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     for (var py = first.y; py <= last.y; py++) {
         for (var px = first.x; px <= last.x; px++) {
             let pixel = u32(py) * scene.width + u32(px);
-            let ray = ray_near_change(pixel, e, e2, reach2);
-            if (!ray.near) {
-                continue;
-            }
-            let dir = ray.dir;
-            let hit = ray.hit;
-            let tc = ray.tc;
-            let half = sqrt(reach2 - ray.perp2);
-            let jitter = pixel_jitter(pixel);
-            let phase = phase_hg(dot(change.direction, -dir), scene.g);
-            let k_first = max(0.0, floor((tc - half - hit.x) / step - jitter) - 1.0);
-            let k_last = ceil((tc + half - hit.x) / step - jitter) + 1.0;
+            let ray = change_ray(pixel, change, e, e2, reach2);
+            let hit = ray.near.hit;
+            let jitter = ray.jitter;
             // The segment of the samples being visited: its slot, first lattice index and
             // samples marched (SLOT_NONE: none yet).
             var segment = SLOT_NONE;
             var slot = SLOT_NONE;
             var k0 = 0.0;
             var marched = 0u;
-            for (var k = k_first; k <= k_last; k += 1.0) {
-                let t = hit.x + (k + jitter) * step;
+            for (var k = ray.k_first; k <= ray.k_last; k += 1.0) {
+                let sample = change_sample(ray, k, p);
+                let t = sample.x;
+                let d2 = sample.y;
                 if (t < hit.x) {
                     continue;
                 }
                 if (t >= hit.y) {
                     break;
                 }
-                let x = scene.eye + dir * t;
-                let d = x - p;
-                let d2 = dot(d, d);
                 if (d2 >= r2) {
                     continue;
                 }
@@ -330,7 +353,7 @@ fn scatter_changes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
                     sum = FixedSum(vec3<u32>(0u), vec3<u32>(0u));
                 }
                 // The gather's term (photon/gather.wgsl), factor for factor.
-                let factor = weight * phase * (1.0 - d2 / r2) * kernel.y;
+                let factor = weight * ray.phase * (1.0 - d2 / r2) * kernel.y;
                 sum = accumulate(sum, change.power * factor, change.kind == CHANGE_SUBTRACT);
                 if (change.kind == CHANGE_REPLACE) {
                     sum = accumulate(sum, change.old_power * factor, true);
@@ -359,7 +382,6 @@ fn scatter_sums(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
     let p = change.position;
     let kernel = pass_kernel(change.pass_index);
     let r2 = kernel.x;
-    let step = photon.gather_step;
     let box = change_pixels(p);
     if (!box.fits) {
         return;
@@ -371,28 +393,16 @@ fn scatter_sums(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
     for (var py = box.first.y; py <= box.last.y; py++) {
         for (var px = box.first.x; px <= box.last.x; px++) {
             let pixel = u32(py) * scene.width + u32(px);
-            let ray = ray_near_change(pixel, e, e2, reach2);
-            if (!ray.near) {
-                continue;
-            }
-            let dir = ray.dir;
-            let hit = ray.hit;
-            let half = sqrt(reach2 - ray.perp2);
-            let jitter = pixel_jitter(pixel);
-            let phase = phase_hg(dot(change.direction, -dir), scene.g);
-            let k_first = max(0.0, floor((ray.tc - half - hit.x) / step - jitter) - 1.0);
-            let k_last = ceil((ray.tc + half - hit.x) / step - jitter) + 1.0;
-            for (var k = k_first; k <= k_last; k += 1.0) {
-                let t = hit.x + (k + jitter) * step;
-                if (t < hit.x) {
+            let ray = change_ray(pixel, change, e, e2, reach2);
+            for (var k = ray.k_first; k <= ray.k_last; k += 1.0) {
+                let sample = change_sample(ray, k, p);
+                let d2 = sample.y;
+                if (sample.x < ray.near.hit.x) {
                     continue;
                 }
-                if (t >= hit.y) {
+                if (sample.x >= ray.near.hit.y) {
                     break;
                 }
-                let x = scene.eye + dir * t;
-                let d = x - p;
-                let d2 = dot(d, d);
                 if (d2 >= r2) {
                     continue;
                 }
@@ -401,7 +411,7 @@ fn scatter_sums(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
                     continue;
                 }
                 // The gather's term (photon/gather.wgsl), factor for factor.
-                let factor = lead * phase * (1.0 - d2 / r2) * kernel.y;
+                let factor = lead * ray.phase * (1.0 - d2 / r2) * kernel.y;
                 var sum = accumulate(FixedSum(vec3<u32>(0u), vec3<u32>(0u)), change.power * factor, change.kind == CHANGE_SUBTRACT);
                 if (change.kind == CHANGE_REPLACE) {
                     sum = accumulate(sum, change.old_power * factor, true);

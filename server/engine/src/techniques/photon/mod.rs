@@ -9,6 +9,9 @@
 //! - A TF edit (`update_tf`) retraces only the paths its split query historygram can change,
 //!   keeps the changed records in a change list, and regathers or updates from the changes
 //!   only the segments they reach (the delta gather, or the delta scatter of photon/scatter.wgsl).
+//!   With per-sample photon sums (`PhotonParams::sample_cache_bytes`, where they fit) the
+//!   changes update the sums instead (`add_changes_to_sums`), and the segments recomposite from
+//!   them.
 //! - A camera edit keeps the photons and gathers again.
 //! - What a gather does is planned by pure, tested steps (`GridPlan`, `touch_entries`,
 //!   `GatherInProgress::part`); `begin_gather` and `gather_part` only record the dispatches.
@@ -624,8 +627,8 @@ const SCATTER_CHANGES_PER_SEGMENT: u64 = 2;
 /// changes to the sums in the gather (at each listed segment's dirty samples, from the change
 /// grid) rather than by `scatter_sums`. The gather pays per dirty sample of every listed
 /// segment, the scatter per change. On lavapipe (96², 2026-12-05) the outer-layer edits, where
-/// the changes are many, took 780 ms (Cornell) and 118 ms (engine) with the gather adding them
-/// and 209–222 ms and 65–67 ms with the scatter; 4 was not tuned further.
+/// the changes are many, took 777–781 ms (Cornell) and 118–156 ms (engine) with the gather
+/// adding them and 209–223 ms and 65–70 ms with the scatter; 4 was not tuned further.
 const SUMS_SCATTER_CHANGES_PER_SEGMENT: u64 = 4;
 
 /// Segments per change-list entry below which an update marks the segments its changes reach
