@@ -285,9 +285,10 @@ const SPATIAL_CELLS: u32 = 2u;
 // The records an update changed, old and new versions (or one entry for both where only the
 // power changed; COUNTER_CHANGES of them).
 @group(0) @binding(15) var<storage, read_write> changes: array<PhotonChange>;
-// The delta scatter's state (photon/scatter.wgsl): per segment a word (SEGMENT_UNTOUCHED, which
-// gather_mark leaves behind in every update; SEGMENT_TOUCHED, set by scatter_touch before it; or
-// the segment's slot + 2, set by gather_mark), then per slot SLOT_WORDS words (segment, samples marched, the change sum's lo
+// The delta scatter's state (photon/scatter.wgsl): per segment a word (SEGMENT_UNTOUCHED between
+// updates: gather_mark clears the marks, scatter_apply and scatter_fallback the slots;
+// SEGMENT_TOUCHED, set by scatter_touch before gather_mark; or the segment's slot + 2, set by
+// gather_mark), then per slot SLOT_WORDS words (segment, samples marched, the change sum's lo
 // and hi words), then per slot scatter_samples sample weights (f32 bits, < 0: not gathered).
 @group(0) @binding(16) var<storage, read_write> scatter: array<atomic<u32>>;
 // The record chunks' list (PhotonUniforms::path_slots): per chunk (pass · chunks_per_pass +

@@ -73,6 +73,24 @@ fn gather_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     if (id >= scene.width * scene.height * photon.segments) {
         return;
     }
+    mark_segment(id);
+}
+
+// gather_mark over the segments scatter_touch listed (in the second half of gather_list),
+// where they are all an update can change: no opacity changed, and the marks stand for the
+// dirty cells (the host checks both). The other segments need nothing.
+@compute @workgroup_size(64)
+fn gather_mark_touched(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let index = linear_index(gid, groups);
+    if (index >= atomicLoad(&counters[COUNTER_LIST + 1u])) {
+        return;
+    }
+    mark_segment(gather_list[scene.width * scene.height * photon.segments + index]);
+}
+
+// Lists segment id for the gather if it must be computed, as a full gather or an update
+// needs, and leaves its delta-scatter mark cleared.
+fn mark_segment(id: u32) {
     var touched = false;
     if (photon.mode == MODE_UPDATE && photon.scatter_capacity > 0u) {
         touched = atomicLoad(&scatter[id]) == SEGMENT_TOUCHED;

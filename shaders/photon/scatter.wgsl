@@ -241,8 +241,8 @@ fn change_entries() -> u32 {
     return min(atomicLoad(&counters[COUNTER_CHANGES]), photon.change_capacity);
 }
 
-// Marks (SEGMENT_TOUCHED) every segment that holds a lattice sample within the radius of a
-// changed photon, or may: the segments of each ray through the photon's ball that overlap the
+// Marks (SEGMENT_TOUCHED) and lists every segment that holds a lattice sample within the radius
+// of a changed photon, or may: the segments of each ray through the photon's ball that overlap the
 // ray's interval within the ball. gather_mark takes these as the segments the changes reach,
 // in place of the dirty cells' march over every segment (COUNTER_TOUCH).
 @compute @workgroup_size(64)
@@ -276,7 +276,13 @@ fn scatter_touch(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
             }
             let last = segment_of(hit, tb);
             for (var s = segment_of(hit, ta); s <= last; s++) {
-                atomicStore(&scatter[pixel * photon.segments + s], SEGMENT_TOUCHED);
+                // Each segment marked once is also listed once, in the second half of
+                // gather_list, free until the gather's rounds (gather_mark_touched).
+                let id = pixel * photon.segments + s;
+                if (atomicExchange(&scatter[id], SEGMENT_TOUCHED) != SEGMENT_TOUCHED) {
+                    let listed = atomicAdd(&counters[COUNTER_LIST + 1u], 1u);
+                    gather_list[scene.width * scene.height * photon.segments + listed] = id;
+                }
             }
         }
     }
@@ -444,6 +450,9 @@ fn scatter_apply(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
     seg.color_hi = seg.color_hi + hi + select(vec3<u32>(0u), vec3<u32>(1u), sum_lo < lo);
     seg.color_lo = sum_lo;
     segments[id] = seg;
+    // Between updates every segment's word reads SEGMENT_UNTOUCHED: the next update's marks
+    // list only what they mark, and gather_mark_touched visits only those.
+    atomicStore(&scatter[id], SEGMENT_UNTOUCHED);
 }
 
 // After an overflow: every slot's segment goes to the delta gather (gather_mark left its
@@ -456,4 +465,5 @@ fn scatter_fallback(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     }
     let id = atomicLoad(&scatter[slot_word(slot, 0u)]);
     gather_list[atomicAdd(&counters[COUNTER_LIST], 1u)] = id | DELTA_SEGMENT;
+    atomicStore(&scatter[id], SEGMENT_UNTOUCHED);
 }

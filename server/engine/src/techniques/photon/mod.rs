@@ -1029,6 +1029,9 @@ pub struct Photon {
     sums_complete: Cell<bool>,
     /// Set by `sum_changes_in_gather`: updates never scatter their changes into the sums.
     sums_by_gather: bool,
+    /// Whether the update under way marked (and listed) the segments its changes reach
+    /// (`touch`).
+    touched: Cell<bool>,
     /// Whether the records' grid is older than the records (an update that gathered no
     /// segment afresh did not need it).
     records_grid_behind: Cell<bool>,
@@ -1097,6 +1100,7 @@ impl Photon {
             sums_applied: Cell::new(false),
             sums_complete: Cell::new(false),
             sums_by_gather: false,
+            touched: Cell::new(false),
             records_grid_behind: Cell::new(false),
             last_uniforms: Cell::new(bytemuck::Zeroable::zeroed()),
             census: Cell::new(false),
@@ -1412,14 +1416,17 @@ impl Photon {
                 ..Dispatch::default()
             },
         );
+        let touched_only = self.touched_only(engine, mode, query)?;
         // gather_mark lists afresh.
         self.write_counter(engine, COUNTER_LIST, 0);
-        self.submit_linear(
-            engine,
-            "photon gather mark",
-            &engine.photon.gather_mark,
-            segments,
-        );
+        let pass = &engine.photon;
+        match touched_only {
+            Some(listed) => {
+                let mark = &pass.gather_mark_touched;
+                self.submit_linear(engine, "photon gather mark touched", mark, listed);
+            }
+            None => self.submit_linear(engine, "photon gather mark", &pass.gather_mark, segments),
+        }
         let records = self.record_count();
         let change_entries = self.budget.change_entries as u32;
         // With per-sample sums, the segments whose sums took the changes from the scatter.
@@ -1549,13 +1556,15 @@ impl Photon {
         Ok(overflow)
     }
 
-    /// Marks the segments the update's changes can reach (`scatter_touch`, over at most
-    /// `entries` change-list entries), for gather_mark to take instead of the dirty cells; with
+    /// Marks and lists the segments the update's changes can reach (`scatter_touch`, over at
+    /// most `entries` change-list entries), for gather_mark to take instead of the dirty cells
+    /// (or, where no opacity changed, to visit alone: `touched_only`); with
     /// per-sample sums, then adds the changes to them (`scatter_sums`, which adds none where
     /// the marks found a change too wide for one invocation).
     fn touch(&self, engine: &Engine, scene: &Scene, query: Query, entries: u32) {
         self.write_scatter_uniforms(engine, scene, query);
         self.write_counter(engine, COUNTER_TOUCH, 1);
+        self.touched.set(true);
         let pass = &engine.photon;
         let mut encoder = Self::encoder(engine, "photon scatter touch");
         let bg = &self.bind_group;
@@ -1576,6 +1585,25 @@ impl Photon {
             );
         }
         engine.gpu.queue.submit([encoder.finish()]);
+    }
+
+    /// Where an update's segments to compute are only those `touch` listed (no opacity
+    /// changed, and its marks stand for the dirty cells: no change was too wide for them and
+    /// the change list holds every change), how many it listed (one blocking read); `None`
+    /// where `gather_mark` must visit every segment.
+    fn touched_only(
+        &self,
+        engine: &Engine,
+        mode: u32,
+        query: Query,
+    ) -> Result<Option<u32>, EngineError> {
+        if mode != MODE_UPDATE || !self.touched.get() || query.opacity != 0 {
+            return Ok(None);
+        }
+        let words = self.counter_words(engine)?;
+        let marks_stand = words[COUNTER_SCATTER_OVERFLOW] == 0
+            && words[COUNTER_CHANGES] as u64 <= self.budget.change_entries;
+        Ok(marks_stand.then_some(words[COUNTER_LIST + 1]))
     }
 
     /// Starts a new generation of the per-sample photon sums: every kept sum is invalid.
@@ -2015,6 +2043,7 @@ impl Photon {
             0,
             &vec![0u8; self.budget.counter_bytes as usize],
         );
+        self.touched.set(false);
         self.write_scene(engine, scene)?;
         let listed = self.list_retraced(engine, scene, paths, query)?;
         self.trace(engine, scene, MODE_UPDATE, 0, listed, query);
