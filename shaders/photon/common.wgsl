@@ -333,10 +333,12 @@ fn sample_read(entry: u32) -> FixedSum {
     if (entry == SAMPLE_NONE) {
         return FixedSum(vec3<u32>(0u), vec3<u32>(0u));
     }
-    return FixedSum(
-        vec3<u32>(atomicLoad(&sample_sums[entry]), atomicLoad(&sample_sums[entry + 1u]), atomicLoad(&sample_sums[entry + 2u])),
-        vec3<u32>(atomicLoad(&sample_sums[entry + 3u]), atomicLoad(&sample_sums[entry + 4u]), atomicLoad(&sample_sums[entry + 5u])),
-    );
+    var sum = FixedSum(vec3<u32>(0u), vec3<u32>(0u));
+    for (var c = 0u; c < 3u; c++) {
+        sum.lo[c] = atomicLoad(&sample_sums[entry + c]);
+        sum.hi[c] = atomicLoad(&sample_sums[entry + 3u + c]);
+    }
+    return sum;
 }
 
 // Keeps the sum (not its generation: a partial sum of a gather that resumes later keeps the

@@ -124,11 +124,11 @@ pub struct PhotonParams {
     /// it: segments past its capacity are gathered.
     pub scatter_bytes: u64,
     /// Bytes the per-sample photon sums may take (28 per lattice sample a view ray can hold:
-    /// pixels × the box diagonal in steps); 0, or a view that needs more, turns them off. With them a segment is the sum over its samples of each sample's photon
-    /// sum weighted once, so a segment whose opacity changed recomposites from the sums
-    /// instead of gathering its photons again (photon/common.wgsl, `sample_sums`). Both
-    /// formulations are exact; they differ in rounding, so an update always uses the one its
-    /// full gather used.
+    /// pixels × the box diagonal in steps); 0, or a view that needs more, turns them off.
+    /// With them a segment is the sum over its samples of each sample's photon sum weighted
+    /// once, so a segment whose opacity changed recomposites from the sums instead of
+    /// gathering its photons again (photon/common.wgsl, `sample_sums`). Both formulations are
+    /// exact; they differ in rounding, so an update always uses the one its full gather used.
     pub sample_cache_bytes: u64,
 }
 
@@ -1618,10 +1618,10 @@ impl Photon {
     /// With per-sample sums, after an update's `gather_mark` (its counter `words`): whether
     /// the update's changes are now in every valid sum. `touch` added them where its marks
     /// stand; otherwise, unless the changes far outnumber the listed segments,
-    /// `scatter_sums` adds them now (one blocking read: a change too wide for it leaves the sums incomplete,
-    /// and a new generation starts). Where the change list overflowed the sums cannot be
-    /// updated: a new generation. Otherwise the gather adds the changes at the dirty samples
-    /// of the segments it recomposites (false).
+    /// `scatter_sums` adds them now (one blocking read: a change too wide for it leaves the
+    /// sums incomplete, and a new generation starts). Where the change list overflowed the
+    /// sums cannot be updated: a new generation. Otherwise the gather adds the changes at the
+    /// dirty samples of the segments it recomposites (false).
     fn add_changes_to_sums(
         &self,
         engine: &Engine,
