@@ -760,6 +760,42 @@ fn a_delta_scatter_that_does_not_fit_is_left_out() {
     assert_eq!(photon.budget().scatter_capacity, 0);
 }
 
+/// The per-sample sums only save time too: at the default budget they are left out of a view
+/// that needs more (1024² here), and where a larger budget asks for more than the device's
+/// storage binding holds, the session is made without them instead of refused (and keeps the
+/// delta scatter).
+#[test]
+fn per_sample_sums_that_do_not_fit_are_left_out() {
+    let volume = cornell_volume(32);
+    let s = cornell_scene(1024, cornell_with(&[]));
+    let defaults = PhotonParams {
+        segments: 2,
+        ..params(Invalidation::DirtyCells)
+    };
+    let budget =
+        |p: &PhotonParams| PhotonBudget::new(p, &volume, 1024, 1024, p.max_passes).expect("budget");
+    assert_eq!(budget(&defaults).sample_cache_samples, 0);
+    let asking = PhotonParams {
+        sample_cache_bytes: 1 << 40,
+        ..defaults
+    };
+    let wanted = budget(&asking);
+    assert!(wanted.sample_cache_samples > 0);
+    assert!(
+        wanted.check(engine()).is_err(),
+        "the sums' {} bytes fit; the test needs a larger view",
+        wanted.sample_cache_bytes
+    );
+    let photon = Photon::new(engine(), volume.clone(), &s, asking).expect("fits without the sums");
+    assert_eq!(photon.params().sample_cache_bytes, 0);
+    assert_eq!(photon.budget().sample_cache_samples, 0);
+    assert!(photon.budget().scatter_capacity > 0);
+    // At the tests' sizes they are on.
+    let small = cornell_scene(40, cornell_with(&[]));
+    let photon = Photon::new(engine(), volume, &small, defaults).expect("photon");
+    assert!(photon.budget().sample_cache_samples > 0);
+}
+
 /// A gather cut into many small rounds (what lavapipe's loop limit needs at larger sizes)
 /// forms the same fixed-point sums as one unbounded round: the states are bit-identical.
 #[test]
