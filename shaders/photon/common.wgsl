@@ -297,7 +297,7 @@ const SPATIAL_CELLS: u32 = 2u;
 // none and was cut short; the host sees it).
 @group(0) @binding(17) var<storage, read_write> chunks: array<atomic<u32>>;
 // The per-sample photon sums (sample_cache_samples > 0): per pixel and lattice index k, the sum
-// of fixed(power · photon_lead() · phase · kernel) over the photons within the radius
+// of fixed(power · sum_lead() · phase · kernel) over the photons within the radius
 // (64-bit fixed point, lo then hi words per channel) and the generation it was formed in
 // (SAMPLE_WORDS words). A segment is then Σ_k fixed(f32(P_k) · transport(T_k, σ_k)), so a
 // segment whose opacity changed recomposites from its samples' sums instead of gathering its
@@ -378,13 +378,10 @@ fn sample_add(entry: u32, sum: FixedSum) {
     }
 }
 
-// The factor a photon's term starts with: the sample's weight where segments sum weighted
-// terms, the kernel's normalisation and the fixed point's scale where samples keep sums.
-fn photon_lead(weight: f32) -> f32 {
-    if (photon.sample_cache_samples > 0u) {
-        return photon.kernel_norm * FIXED_ONE;
-    }
-    return weight;
+// The factor a photon's term in a per-sample sum starts with: the kernel's normalisation and
+// the fixed point's scale (the sample's weight comes in with its transport).
+fn sum_lead() -> f32 {
+    return photon.kernel_norm * FIXED_ONE;
 }
 
 // What a sample's photon sum is weighted by in a segment (sample_weight without the kernel's

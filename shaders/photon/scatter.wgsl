@@ -395,7 +395,7 @@ fn scatter_sums(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
     let e = p - scene.eye;
     let e2 = dot(e, e);
     let reach2 = ball_reach2(e2);
-    let lead = photon_lead(0.0);
+    let lead = sum_lead();
     for (var py = box.first.y; py <= box.last.y; py++) {
         for (var px = box.first.x; px <= box.last.x; px++) {
             let pixel = u32(py) * scene.width + u32(px);

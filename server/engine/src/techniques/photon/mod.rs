@@ -1495,7 +1495,12 @@ impl Photon {
                 self.write_counter(engine, COUNTER_LIST + part.output as usize, 0);
             }
             let invocations = part.slots * part.round.stride;
-            self.submit_linear(engine, "photon gather", &engine.photon.gather, invocations);
+            let (label, gather) = if self.budget.sample_cache_samples > 0 {
+                ("photon gather sums", &engine.photon.gather_sums)
+            } else {
+                ("photon gather", &engine.photon.gather)
+            };
+            self.submit_linear(engine, label, gather, invocations);
             let left = match part.next_list {
                 Some(word) => self.counter(engine, word)?,
                 None => 0,
