@@ -14,13 +14,12 @@
 // from the changed photons' side. Listing them keeps every SIMD lane of the gather busy (a
 // sparse update would otherwise pay for whole idle batches).
 //
-// Two gathers, one per formulation (the host picks): `gather`, where a segment sums its
-// photons' weighted terms, and `gather_sums`, where each sample keeps its photon sum
-// (sample_sums) and the segment weights the kept sums. They share the photon loop
-// (gather_cells) and are separate so that the first compiles to the lean kernel it was before
-// the sums: in one kernel, the sums' live state made llvmpipe's full gathers without them
-// 25–35% slower (CT volumes at 256²).
-// Each gather counts its loop iterations and, after `round_budget` of them, keeps its place in
+// `gather` serves both formulations, as two pipelines that set SAMPLE_SUMS: segments that
+// sum their photons' weighted terms (false), or samples that keep their photon sums and
+// segments that weight them (true). Each pipeline compiles without the other's code: with
+// the choice made at run time, llvmpipe's full gathers without the sums were 25–35% slower
+// (CT volumes at 256²).
+// `gather` counts its loop iterations and, after `round_budget` of them, keeps its place in
 // `gather_state`; the host runs rounds over the segments still listed until none is left. The
 // sums do not depend on the budget: llvmpipe silently ends an invocation's loops after 65535
 // iterations in all, and dense cells exceed that.
@@ -28,6 +27,10 @@
 // Rust twin: server/engine/src/techniques/photon/gpu.rs.
 
 #import photon/common
+
+// Whether this pipeline's gather keeps per-sample photon sums (the host's
+// PhotonBudget::sample_cache_samples > 0); see the header.
+override SAMPLE_SUMS: bool = false;
 
 // Whether a photon change recorded in the spatial historygram can reach the segment a..b.
 fn spatial_hit(a: vec3<f32>, b: vec3<f32>) -> bool {
@@ -203,229 +206,57 @@ fn sample_grid(kept: u32) -> u32 {
 // changes were not added to them (sums_applied = 0), and a dirty sample may hold a changed
 // photon's old term.
 fn forget_dirty_sums() -> bool {
-    return photon.mode == MODE_UPDATE && photon.sums_applied == 0u;
+    return SAMPLE_SUMS && photon.mode == MODE_UPDATE && photon.sums_applied == 0u;
 }
 
-// The terms of the photons of `grid` in the 27-cell neighbourhood of the sample at x, from
-// st.cell and st.rank on, added to *acc; each term starts with `lead`. Stops where the round's
-// budget runs out inside a cell (false), st.cell and st.rank keeping the place; *used counts
-// the loop iterations. Shared by both formulations' gathers.
-fn gather_cells(
-    st: ptr<function, GatherState>,
-    used: ptr<function, u32>,
-    acc: ptr<function, FixedSum>,
-    x: vec3<f32>,
-    lead: f32,
-    grid: u32,
-    out_dir: vec3<f32>,
-) -> bool {
-    let budget = photon.round_budget;
-    let r2 = photon.radius * photon.radius;
-    let dims = vec3<i32>(photon.grid_dims);
-    let centre = grid_cell3(x);
-    let cells_base = grid_base(grid);
-    let slots_base = sorted_base(grid);
-    for (; (*st).cell < 27u; (*st).cell++) {
-        *used += 1u;
-        let c = (*st).cell;
-        let n = centre + vec3<i32>(i32(c % 3u), i32(c / 3u % 3u), i32(c / 9u)) - 1;
-        if (any(n < vec3<i32>(0)) || any(n >= dims)) {
-            continue;
-        }
-        // A neighbour farther than the radius holds no photon that contributes (about a
-        // quarter of the 27 for a uniformly placed sample).
-        if (cube_distance2(scene.box_min + vec3<f32>(n) * photon.radius, photon.radius, x) >= r2) {
-            continue;
-        }
-        let cell = cells_base + grid_index(n);
-        let first = atomicLoad(&grid_cells[cell]);
-        let end = atomicLoad(&grid_cells[cell + 1u]);
-        let start = first + (*st).rank;
-        // As many of the cell's photons as the budget allows (at least none).
-        // (budget may be u32::MAX: no overflowing sum.)
-        let stop = start + min(end - start, budget - min(*used, budget));
-        for (var i = start; i < stop; i++) {
-            let item = grid_sorted[slots_base + i];
-            var position: vec3<f32>;
-            var power: vec3<f32>;
-            var direction: vec3<f32>;
-            var kind = CHANGE_ADD;
-            var old_power = vec3<f32>(0.0);
-            var pass_index: u32;
-            if (grid == GRID_CHANGES) {
-                let change = changes[item];
-                position = change.position;
-                power = change.power;
-                direction = change.direction;
-                kind = change.kind;
-                old_power = change.old_power;
-                pass_index = change.pass_index;
-            } else {
-                let rec = records[item];
-                position = rec.position;
-                power = rec.power;
-                direction = rec.direction;
-                pass_index = record_pass(item);
-            }
-            let d = x - position;
-            let d2 = dot(d, d);
-            let kernel = pass_kernel(pass_index);
-            if (d2 < kernel.x) {
-                if (photon.census != 0u && grid == GRID_RECORDS) {
-                    atomicAdd(&scatter[item], 1u);
-                }
-                // A replaced photon's two terms share this factor (same position and
-                // direction), so they are the very terms two separate visits would give.
-                let s = lead * phase_hg(dot(direction, out_dir), scene.g) * (1.0 - d2 / kernel.x) * kernel.y;
-                *acc = accumulate(*acc, power * s, kind == CHANGE_SUBTRACT);
-                if (kind == CHANGE_REPLACE) {
-                    *acc = accumulate(*acc, old_power * s, true);
-                }
-            }
-        }
-        *used += stop - start;
-        if (stop < end) {
-            (*st).rank = stop - first;
-            return false;
-        }
-        (*st).rank = 0u;
-    }
-    return true;
-}
-
-// The list entry of this invocation's segment in the round (NO_ENTRY: none; a segment is
-// visited by the first of round_stride invocations).
-const NO_ENTRY: u32 = 0xffffffffu;
-
-fn round_entry(gid: vec3<u32>, groups: vec3<u32>, segment_count: u32) -> u32 {
-    let invocation = linear_index(gid, groups);
-    let slot = photon.round_first + invocation / photon.round_stride;
-    if (invocation % photon.round_stride != 0u || slot >= atomicLoad(&counters[COUNTER_LIST + photon.round_input])) {
-        return NO_ENTRY;
-    }
-    return gather_list[photon.round_input * segment_count + slot];
-}
-
-// The gather where segments sum their photons' weighted terms (no per-sample sums). A delta
-// segment (DELTA_SEGMENT) starts from its old sum and visits the change grid at its dirty
-// samples; a fresh one visits the records' grid at every sample.
 @compute @workgroup_size(64)
 fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let invocation = linear_index(gid, groups);
+    let slot = photon.round_first + invocation / photon.round_stride;
     let segment_count = scene.width * scene.height * photon.segments;
-    let entry = round_entry(gid, groups, segment_count);
-    if (entry == NO_ENTRY) {
+    if (invocation % photon.round_stride != 0u || slot >= atomicLoad(&counters[COUNTER_LIST + photon.round_input])) {
         return;
     }
+    let entry = gather_list[photon.round_input * segment_count + slot];
     let id = entry & ~DELTA_SEGMENT;
-    let grid = select(GRID_RECORDS, GRID_CHANGES, id != entry);
+    let cached = SAMPLE_SUMS;
+    // A delta segment visits the change grid, a fresh one the records'. With per-sample sums
+    // each sample chooses (sample_grid), and its sum so far waits in its entry between
+    // rounds.
+    let segment_grid = select(GRID_RECORDS, GRID_CHANGES, id != entry);
     let pixel = id / photon.segments;
     let dir = pixel_ray(pixel);
+    let out_dir = -dir;
     let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
     let bounds = segment_bounds(hit, id % photon.segments);
     let jitter = pixel_jitter(pixel);
     let step = photon.gather_step;
+    let r2 = photon.radius * photon.radius;
+    let dims = vec3<i32>(photon.grid_dims);
     let budget = photon.round_budget;
     var st = gather_state[id];
     // This invocation's loop iterations; each loop counts its own so that the sum stays
     // within the budget whatever the nesting.
     var used = 0u;
-    // The segment's sum (written back to st only where the segment is deferred).
-    var acc = FixedSum(st.color_lo, st.color_hi);
-    // The current sample (recomputed when resuming inside one).
+    // The current sample (recomputed when resuming inside one): position, extinction, the
+    // factor its photons' terms start with, its kept sum's entry, the grid it visits, and the
+    // sum its terms join (the segment's, or with per-sample sums the sample's).
     var x = scene.eye + dir * (hit.x + (st.k + jitter) * step);
     var sigma = 0.0;
-    var weight = 0.0;
-    if (st.cell < NEXT_SAMPLE) {
-        sigma = classify(data_at(x)).a * scene.density_scale;
-        weight = sample_weight(st.transmit, sigma);
-    }
-    loop {
-        if (used >= budget) {
-            st.color_lo = acc.lo;
-            st.color_hi = acc.hi;
-            defer_segment(entry, st, segment_count);
-            return;
-        }
-        used += 1u;
-        if (st.cell == NEXT_SAMPLE) {
-            let t = hit.x + (st.k + jitter) * step;
-            if (t < bounds.x) {
-                st.k += 1.0;
-                continue;
-            }
-            if (t >= bounds.y || st.transmit < SEGMENT_T_CUTOFF) {
-                break;
-            }
-            x = scene.eye + dir * t;
-            let v = data_at(x);
-            let bit = hist_bit(v);
-            st.hist_lo |= bit.x;
-            st.hist_hi |= bit.y;
-            sigma = classify(v).a * scene.density_scale;
-            if (sigma <= 0.0) {
-                st.k += 1.0;
-                continue;
-            }
-            if (grid == GRID_CHANGES && !dirty(x)) {
-                // No changed photon within the radius: the sample's terms are as before.
-                st.transmit *= exp(-sigma * step);
-                st.k += 1.0;
-                continue;
-            }
-            weight = sample_weight(st.transmit, sigma);
-            st.cell = 0u;
-            st.rank = 0u;
-        }
-        if (!gather_cells(&st, &used, &acc, x, weight, grid, -dir)) {
-            st.color_lo = acc.lo;
-            st.color_hi = acc.hi;
-            defer_segment(entry, st, segment_count);
-            return;
-        }
-        st.transmit *= exp(-sigma * step);
-        st.k += 1.0;
-        st.cell = NEXT_SAMPLE;
-    }
-    segments[id] = Segment(acc.lo, st.transmit, acc.hi, st.hist_lo, st.hist_hi, 0u, 0u, 0u);
-}
-
-// The gather with per-sample sums: each sample's photon sum is kept (sample_sums), and the
-// segment sums the kept sums weighted by their transport. A sample gathers its photons from
-// the records' grid where it holds no valid sum; otherwise it starts from its kept sum and, in
-// an update whose changes the scatter did not add, visits the change grid where it is dirty.
-// Its sum so far waits in its entry between rounds.
-@compute @workgroup_size(64)
-fn gather_sums(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let segment_count = scene.width * scene.height * photon.segments;
-    let entry = round_entry(gid, groups, segment_count);
-    if (entry == NO_ENTRY) {
-        return;
-    }
-    let id = entry & ~DELTA_SEGMENT;
-    let pixel = id / photon.segments;
-    let dir = pixel_ray(pixel);
-    let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
-    let bounds = segment_bounds(hit, id % photon.segments);
-    let jitter = pixel_jitter(pixel);
-    let step = photon.gather_step;
-    let budget = photon.round_budget;
-    let lead = sum_lead();
-    var st = gather_state[id];
-    var used = 0u;
-    // The current sample (recomputed when resuming inside one): position, extinction, its
-    // kept sum's entry, the grid it visits, and its sum so far.
-    var x = scene.eye + dir * (hit.x + (st.k + jitter) * step);
-    var sigma = 0.0;
+    var lead = 0.0;
+    var centre = grid_cell3(x);
     var kept = sample_entry(pixel, st.k);
-    var grid = GRID_RECORDS;
-    var acc = FixedSum(vec3<u32>(0u), vec3<u32>(0u));
+    var grid = segment_grid;
+    var acc = FixedSum(st.color_lo, st.color_hi);
     if (st.cell < NEXT_SAMPLE) {
         sigma = classify(data_at(x)).a * scene.density_scale;
-        grid = sample_grid(kept);
-        acc = sample_read(kept);
+        lead = select(sample_weight(st.transmit, sigma), sum_lead(), cached);
+        if (cached) {
+            grid = sample_grid(kept);
+            acc = sample_read(kept);
+        }
     }
     loop {
-        // Only ever between samples: the sample's sum needs no keeping.
         if (used >= budget) {
             defer_segment(entry, st, segment_count);
             return;
@@ -472,33 +303,112 @@ fn gather_sums(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
                 st.k += 1.0;
                 continue;
             }
-            // Fresh where the sum is not kept; else the kept sum, plus the changes within the
-            // radius where the scatter did not add them.
-            grid = sample_grid(kept);
             var visit = true;
-            if (grid == GRID_CHANGES) {
-                acc = sample_read(kept);
-                visit = photon.sums_applied == 0u && dirty(x);
-            } else {
-                acc = FixedSum(vec3<u32>(0u), vec3<u32>(0u));
+            if (cached) {
+                // Fresh where the sum is not kept; else the kept sum, plus the changes within
+                // the radius where the scatter did not add them.
+                grid = sample_grid(kept);
+                if (grid == GRID_CHANGES) {
+                    acc = sample_read(kept);
+                    visit = photon.sums_applied == 0u && dirty(x);
+                } else {
+                    acc = FixedSum(vec3<u32>(0u), vec3<u32>(0u));
+                }
+            } else if (segment_grid == GRID_CHANGES && !dirty(x)) {
+                // No changed photon within the radius: the sample's terms are as before.
+                visit = false;
             }
+            lead = select(sample_weight(st.transmit, sigma), sum_lead(), cached);
+            centre = grid_cell3(x);
             st.rank = 0u;
             st.cell = select(SKIP_CELLS, 0u, visit);
         }
-        if (!gather_cells(&st, &used, &acc, x, lead, grid, -dir)) {
-            sample_keep(kept, acc);
-            defer_segment(entry, st, segment_count);
-            return;
+        let cells_base = grid_base(grid);
+        let slots_base = sorted_base(grid);
+        for (; st.cell < 27u; st.cell++) {
+            used += 1u;
+            let n = centre + vec3<i32>(i32(st.cell % 3u), i32(st.cell / 3u % 3u), i32(st.cell / 9u)) - 1;
+            if (any(n < vec3<i32>(0)) || any(n >= dims)) {
+                continue;
+            }
+            // A neighbour farther than the radius holds no photon that contributes (about a
+            // quarter of the 27 for a uniformly placed sample).
+            if (cube_distance2(scene.box_min + vec3<f32>(n) * photon.radius, photon.radius, x) >= r2) {
+                continue;
+            }
+            let cell = cells_base + grid_index(n);
+            let first = atomicLoad(&grid_cells[cell]);
+            let end = atomicLoad(&grid_cells[cell + 1u]);
+            let start = first + st.rank;
+            // As many of the cell's photons as the budget allows (at least none).
+            // (budget may be u32::MAX: no overflowing sum.)
+            let stop = start + min(end - start, budget - min(used, budget));
+            for (var i = start; i < stop; i++) {
+                let item = grid_sorted[slots_base + i];
+                var position: vec3<f32>;
+                var power: vec3<f32>;
+                var direction: vec3<f32>;
+                var kind = CHANGE_ADD;
+                var old_power = vec3<f32>(0.0);
+                var pass_index: u32;
+                if (grid == GRID_CHANGES) {
+                    let change = changes[item];
+                    position = change.position;
+                    power = change.power;
+                    direction = change.direction;
+                    kind = change.kind;
+                    old_power = change.old_power;
+                    pass_index = change.pass_index;
+                } else {
+                    let rec = records[item];
+                    position = rec.position;
+                    power = rec.power;
+                    direction = rec.direction;
+                    pass_index = record_pass(item);
+                }
+                let d = x - position;
+                let d2 = dot(d, d);
+                let kernel = pass_kernel(pass_index);
+                if (d2 < kernel.x) {
+                    if (photon.census != 0u && grid == GRID_RECORDS) {
+                        atomicAdd(&scatter[item], 1u);
+                    }
+                    // A replaced photon's two terms share this factor (same position and
+                    // direction), so they are the very terms two separate visits would give.
+                    let s = lead * phase_hg(dot(direction, out_dir), scene.g) * (1.0 - d2 / kernel.x) * kernel.y;
+                    acc = accumulate(acc, power * s, kind == CHANGE_SUBTRACT);
+                    if (kind == CHANGE_REPLACE) {
+                        acc = accumulate(acc, old_power * s, true);
+                    }
+                }
+            }
+            used += stop - start;
+            if (stop < end) {
+                st.rank = stop - first;
+                if (cached) {
+                    sample_keep(kept, acc);
+                } else {
+                    st.color_lo = acc.lo;
+                    st.color_hi = acc.hi;
+                }
+                defer_segment(entry, st, segment_count);
+                return;
+            }
+            st.rank = 0u;
         }
-        // The sample's sum is kept (where its cells were visited), and joins the segment's
-        // weighted by its transport.
-        if (st.cell == 27u) {
-            sample_write(kept, acc);
+        if (cached) {
+            // The sample's sum is kept, and joins the segment's weighted by its transport.
+            if (st.cell == 27u) {
+                sample_write(kept, acc);
+            }
+            let radiance = fixed_to_f32(acc.lo, acc.hi) * (transport(st.transmit, sigma) * FIXED_ONE);
+            let sum = accumulate(FixedSum(st.color_lo, st.color_hi), radiance, false);
+            st.color_lo = sum.lo;
+            st.color_hi = sum.hi;
+        } else {
+            st.color_lo = acc.lo;
+            st.color_hi = acc.hi;
         }
-        let radiance = fixed_to_f32(acc.lo, acc.hi) * (transport(st.transmit, sigma) * FIXED_ONE);
-        let sum = accumulate(FixedSum(st.color_lo, st.color_hi), radiance, false);
-        st.color_lo = sum.lo;
-        st.color_hi = sum.hi;
         st.transmit *= exp(-sigma * step);
         st.k += 1.0;
         st.cell = NEXT_SAMPLE;

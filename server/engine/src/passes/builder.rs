@@ -104,13 +104,29 @@ impl Layout {
         module: &wgpu::ShaderModule,
         entry: &str,
     ) -> wgpu::ComputePipeline {
+        self.specialized_pipeline(gpu, label, module, entry, &[])
+    }
+
+    /// A pipeline of `module`'s entry point `entry` with its pipeline-overridable constants
+    /// (WGSL `override`) set by name.
+    pub fn specialized_pipeline(
+        &self,
+        gpu: &Gpu,
+        label: &str,
+        module: &wgpu::ShaderModule,
+        entry: &str,
+        constants: &[(&str, f64)],
+    ) -> wgpu::ComputePipeline {
         gpu.device
             .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some(label),
                 layout: Some(&self.pipeline),
                 module,
                 entry_point: Some(entry),
-                compilation_options: Default::default(),
+                compilation_options: wgpu::PipelineCompilationOptions {
+                    constants,
+                    ..Default::default()
+                },
                 cache: None,
             })
     }

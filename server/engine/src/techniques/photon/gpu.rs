@@ -262,6 +262,11 @@ impl PhotonPass {
         let pipeline = |label: &str, module: &wgpu::ShaderModule, entry: &str| {
             layout.entry_pipeline(gpu, label, module, entry)
         };
+        // One gather kernel, compiled per formulation (photon/gather.wgsl, SAMPLE_SUMS).
+        let gather_pipeline = |label: &str, sums: bool| {
+            let constants = [("SAMPLE_SUMS", f64::from(u8::from(sums)))];
+            layout.specialized_pipeline(gpu, label, &gather, "gather", &constants)
+        };
         Self {
             trace_mark: pipeline("photon trace mark", &trace, "trace_mark"),
             trace_clear: pipeline("photon trace clear", &trace, "trace_clear"),
@@ -279,8 +284,8 @@ impl PhotonPass {
                 &gather,
                 "gather_mark_touched",
             ),
-            gather: pipeline("photon gather", &gather, "gather"),
-            gather_sums: pipeline("photon gather sums", &gather, "gather_sums"),
+            gather: gather_pipeline("photon gather", false),
+            gather_sums: gather_pipeline("photon gather sums", true),
             composite: pipeline("photon composite", &gather, "composite"),
             scatter_touch: pipeline("photon scatter touch", &scatter, "scatter_touch"),
             scatter_weights: pipeline("photon scatter weights", &scatter, "scatter_weights"),
