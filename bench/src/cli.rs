@@ -212,6 +212,9 @@ pub struct TfEditArgs {
     /// photon sums), to compare the two in one build.
     #[arg(long)]
     pub segment_sums: bool,
+    /// The scenarios measured (default: all of cornell, engine and chest).
+    #[arg(long, value_delimiter = ',')]
+    pub scenarios: Vec<String>,
     /// `irradiance`: frames that build the cache before each edit.
     #[arg(long, default_value_t = 120)]
     pub build_frames: u32,
@@ -489,6 +492,7 @@ fn tf_edit(a: &TfEditArgs, data: Option<&Path>) -> anyhow::Result<serde_json::Va
         repeats: a.repeats.max(1),
         census: a.census,
         segment_sums: a.segment_sums,
+        scenarios: &a.scenarios,
     };
     match a.technique {
         TfEditTechnique::Photon => engine::tf_edit(&scenarios),

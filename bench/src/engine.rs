@@ -111,6 +111,8 @@ pub struct TfEditBench<'a> {
     pub census: bool,
     /// `photon`: without per-sample photon sums (`PhotonParams::sample_cache_bytes` 0).
     pub segment_sums: bool,
+    /// The scenarios to measure by name (empty: all).
+    pub scenarios: &'a [String],
 }
 
 /// One TF edit of a scenario: a name and the edited TF.
@@ -222,45 +224,31 @@ pub(crate) struct Scenario {
 /// engine CT and the chest CT, each with a colour edit, a removed material, the outer layer
 /// and a global edit.
 pub(crate) fn tf_edit_scenarios(options: &TfEditBench) -> anyhow::Result<Vec<Scenario>> {
+    const NAMES: [&str; 3] = ["cornell", "engine", "chest"];
+    if let Some(unknown) = options
+        .scenarios
+        .iter()
+        .find(|s| !NAMES.contains(&s.as_str()))
+    {
+        anyhow::bail!(
+            "tf-edit: no scenario `{unknown}` (there are {})",
+            NAMES.join(", ")
+        );
+    }
+    let wanted =
+        |name: &str| options.scenarios.is_empty() || options.scenarios.iter().any(|s| s == name);
     let mut out = Vec::new();
-    let mut cornell = voxlight_volumes::phantom("cornell", options.max_dim.min(64))?;
-    cornell.name = "phantom:cornell".to_owned();
-    let tf = voxlight_app::datasets::cornell_tf();
-    // cornell_tf: a leading transparent pair, then two points per material in
-    // CORNELL_MATERIALS order (medium, left, right, white walls, tall block, sphere).
-    let material = |name: &str| {
-        let i = voxlight_volumes::CORNELL_MATERIALS
-            .iter()
-            .position(|(n, _)| *n == name)
-            .unwrap_or(0);
-        let first = tf.points.len() - 2 * (voxlight_volumes::CORNELL_MATERIALS.len() - i);
-        first..first + 2
-    };
-    let edits = edits_for(
-        &tf,
-        material("sphere"),
-        material("tall block"),
-        material("white walls"),
-    );
-    out.push(Scenario {
-        name: "cornell",
-        dataset: format!("phantom:cornell@{}", cornell.dims[0]),
-        volume: cornell,
-        // Into the open front (z = max), y up.
-        camera: Camera {
-            eye: [0.0, 0.0, 2.6],
-            target: [0.0, 0.0, 0.0],
-            up: [0.0, 1.0, 0.0],
-            fov_deg: 28.0,
-        },
-        tf,
-        edits,
-    });
+    if wanted("cornell") {
+        out.push(cornell_scenario(options)?);
+    }
     let Some(dir) = options.data_dir else {
         eprintln!("tf-edit: no data folder (../shared/data); only the Cornell phantom is measured");
         return Ok(out);
     };
     for (name, rel) in [("engine", "vti/engine.vti"), ("chest", "ct-chest-lidc")] {
+        if !wanted(name) {
+            continue;
+        }
         let path = dir.join(rel);
         if !path.exists() {
             eprintln!(
@@ -302,6 +290,43 @@ pub(crate) fn tf_edit_scenarios(options: &TfEditBench) -> anyhow::Result<Vec<Sce
         });
     }
     Ok(out)
+}
+
+/// The Cornell phantom's scenario.
+fn cornell_scenario(options: &TfEditBench) -> anyhow::Result<Scenario> {
+    let mut cornell = voxlight_volumes::phantom("cornell", options.max_dim.min(64))?;
+    cornell.name = "phantom:cornell".to_owned();
+    let tf = voxlight_app::datasets::cornell_tf();
+    // cornell_tf: a leading transparent pair, then two points per material in
+    // CORNELL_MATERIALS order (medium, left, right, white walls, tall block, sphere).
+    let material = |name: &str| {
+        let i = voxlight_volumes::CORNELL_MATERIALS
+            .iter()
+            .position(|(n, _)| *n == name)
+            .unwrap_or(0);
+        let first = tf.points.len() - 2 * (voxlight_volumes::CORNELL_MATERIALS.len() - i);
+        first..first + 2
+    };
+    let edits = edits_for(
+        &tf,
+        material("sphere"),
+        material("tall block"),
+        material("white walls"),
+    );
+    Ok(Scenario {
+        name: "cornell",
+        dataset: format!("phantom:cornell@{}", cornell.dims[0]),
+        volume: cornell,
+        // Into the open front (z = max), y up.
+        camera: Camera {
+            eye: [0.0, 0.0, 2.6],
+            target: [0.0, 0.0, 0.0],
+            up: [0.0, 1.0, 0.0],
+            fov_deg: 28.0,
+        },
+        tf,
+        edits,
+    })
 }
 
 /// `bench tf-edit --technique photon`: for each scenario and edit, a full recompute with the
@@ -381,6 +406,12 @@ pub fn tf_edit(options: &TfEditBench) -> anyhow::Result<serde_json::Value> {
                     }
                 }
             }
+            let spread = |times: &[f64]| {
+                let lo = times.iter().copied().fold(f64::INFINITY, f64::min);
+                let hi = times.iter().copied().fold(0.0, f64::max);
+                [lo, hi]
+            };
+            let (full_range, incremental_range) = (spread(&full_times), spread(&incremental_times));
             let (full_ms, incremental_ms) = (median(full_times), median(incremental_times));
             for other in &mut others {
                 other.recompute(&engine, &base, options.passes)?;
@@ -412,11 +443,14 @@ pub fn tf_edit(options: &TfEditBench) -> anyhow::Result<serde_json::Value> {
                 .fold(0.0f32, f32::max);
             let speedup = full_ms / incremental_ms.max(1e-6);
             eprintln!(
-                "{} / {}: full {full_ms:.1} ms, incremental {incremental_ms:.1} ms ({speedup:.2}×), \
+                "{} / {}: full {full_ms:.1} ms, incremental {incremental_ms:.1} ms ({speedup:.2}×; \
+                 fastest {:.1} ms, slowest {:.1} ms), \
                  retraced {:.1}%, segments {:.1}%, query bins {}, max_abs_diff {max_abs_diff}, \
                  bit-exact {bit_exact}; other segment tests: {}",
                 scenario.name,
                 edit.name,
+                incremental_range[0],
+                incremental_range[1],
                 report.photons_retraced_pct(),
                 report.segments_recomputed_pct(),
                 query.count_ones(),
@@ -428,6 +462,8 @@ pub fn tf_edit(options: &TfEditBench) -> anyhow::Result<serde_json::Value> {
                 "edit": edit.name,
                 "full_ms": full_ms,
                 "incremental_ms": incremental_ms,
+                "full_ms_range": full_range,
+                "incremental_ms_range": incremental_range,
                 "speedup": speedup,
                 "photons_retraced_pct": report.photons_retraced_pct(),
                 "segments_recomputed_pct": report.segments_recomputed_pct(),
