@@ -374,7 +374,11 @@ fn sample_add(entry: u32, sum: FixedSum) {
         }
         let old = atomicAdd(&sample_sums[entry + c], lo);
         let carry = select(0u, 1u, old + lo < old);
-        atomicAdd(&sample_sums[entry + 3u + c], hi + carry);
+        // Most terms are small: hi + carry wraps to 0 for a negative one (hi all ones, a
+        // carry) and is 0 for a positive one without a carry; adding it would change nothing.
+        if (hi + carry != 0u) {
+            atomicAdd(&sample_sums[entry + 3u + c], hi + carry);
+        }
     }
 }
 

@@ -97,6 +97,14 @@ fn gather_mark_touched(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     mark_segment(gather_list[scene.width * scene.height * photon.segments + index]);
 }
 
+// Whether the delta scatter's marks cover every change (photon/scatter.wgsl): scatter_touch ran,
+// found no change too wide for it, and the change list holds them all.
+fn marks_stand() -> bool {
+    return atomicLoad(&counters[COUNTER_TOUCH]) != 0u
+        && atomicLoad(&counters[COUNTER_SCATTER_OVERFLOW]) == 0u
+        && atomicLoad(&counters[COUNTER_CHANGES]) <= photon.change_capacity;
+}
+
 // Lists segment id for the gather if it must be computed, as a full gather or an update
 // needs, and leaves its delta-scatter mark cleared.
 fn mark_segment(id: u32) {
@@ -104,6 +112,14 @@ fn mark_segment(id: u32) {
     if (photon.mode == MODE_UPDATE && photon.scatter_capacity > 0u) {
         touched = atomicLoad(&scatter[id]) == SEGMENT_TOUCHED;
         atomicStore(&scatter[id], SEGMENT_UNTOUCHED);
+    }
+    if (photon.mode == MODE_UPDATE && !touched && photon.spatial == SPATIAL_CELLS && marks_stand()) {
+        // Most segments of an opacity edit: neither their opacity nor a change reaches them,
+        // which the rest would find only after tracing their ray.
+        let old = segments[id];
+        if (!hist_hits_opacity_query(old.hist_lo, old.hist_hi)) {
+            return;
+        }
     }
     let pixel = id / photon.segments;
     let dir = pixel_ray(pixel);
@@ -126,11 +142,7 @@ fn mark_segment(id: u32) {
             if (photon.spatial == SPATIAL_AXES) {
                 stale = spatial_hit(scene.eye + dir * bounds.x, scene.eye + dir * bounds.y);
             } else if (photon.spatial == SPATIAL_CELLS) {
-                // The delta scatter's marks where they cover every change (photon/scatter.wgsl).
-                let marked = atomicLoad(&counters[COUNTER_TOUCH]) != 0u
-                    && atomicLoad(&counters[COUNTER_SCATTER_OVERFLOW]) == 0u
-                    && atomicLoad(&counters[COUNTER_CHANGES]) <= photon.change_capacity;
-                if (marked) {
+                if (marks_stand()) {
                     stale = touched;
                 } else {
                     stale = cells_hit(pixel, hit, bounds.x, bounds.y, dir);

@@ -96,7 +96,11 @@ fn add_to_slot(slot: u32, sum: FixedSum) {
         }
         let old = atomicAdd(&scatter[slot_word(slot, 2u + c)], lo);
         let carry = select(0u, 1u, old + lo < old);
-        atomicAdd(&scatter[slot_word(slot, 5u + c)], hi + carry);
+        // Most terms are small: hi + carry wraps to 0 for a negative one (hi all ones, a
+        // carry) and is 0 for a positive one without a carry; adding it would change nothing.
+        if (hi + carry != 0u) {
+            atomicAdd(&scatter[slot_word(slot, 5u + c)], hi + carry);
+        }
     }
 }
 
@@ -213,8 +217,7 @@ struct ChangeRay {
     k_last: f32,
 }
 
-fn change_ray(pixel: u32, change: PhotonChange, e: vec3<f32>, e2: f32, reach2: f32) -> ChangeRay {
-    let ray = ray_near_change(pixel, e, e2, reach2);
+fn change_ray(pixel: u32, change: PhotonChange, ray: RayNearChange, reach2: f32) -> ChangeRay {
     var out = ChangeRay(ray, 0.0, 0.0, 0.0, -1.0);
     if (!ray.near) {
         return out;
@@ -241,6 +244,11 @@ fn change_entries() -> u32 {
     return min(atomicLoad(&counters[COUNTER_CHANGES]), photon.change_capacity);
 }
 
+// Whether scatter_touch also adds the changes to the per-sample sums (scatter_sums' work, in the
+// same visit of each change's pixels): its pipeline `scatter_touch_sums`. A change too wide for
+// the marks then leaves the sums partly added, and the host starts them anew.
+override TOUCH_SUMS: bool = false;
+
 // Marks (SEGMENT_TOUCHED) and lists every segment that holds a lattice sample within the radius
 // of a changed photon, or may: the segments of each ray through the photon's ball that overlap the
 // ray's interval within the ball. gather_mark takes these as the segments the changes reach,
@@ -251,7 +259,8 @@ fn scatter_touch(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
     if (index >= change_entries()) {
         return;
     }
-    let p = changes[index].position;
+    let change = changes[index];
+    let p = change.position;
     let box = change_pixels(p);
     if (!box.fits) {
         return;
@@ -259,12 +268,17 @@ fn scatter_touch(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
     let e = p - scene.eye;
     let e2 = dot(e, e);
     let reach2 = ball_reach2(e2);
+    let kernel = pass_kernel(change.pass_index);
+    let lead = sum_lead();
     for (var py = box.first.y; py <= box.last.y; py++) {
         for (var px = box.first.x; px <= box.last.x; px++) {
             let pixel = u32(py) * scene.width + u32(px);
             let ray = ray_near_change(pixel, e, e2, reach2);
             if (!ray.near) {
                 continue;
+            }
+            if (TOUCH_SUMS) {
+                add_to_sums(pixel, change, change_ray(pixel, change, ray, reach2), kernel, lead);
             }
             let hit = ray.hit;
             // A step's margin at each end for the rounding of the samples' positions.
@@ -312,7 +326,7 @@ fn scatter_changes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     for (var py = first.y; py <= last.y; py++) {
         for (var px = first.x; px <= last.x; px++) {
             let pixel = u32(py) * scene.width + u32(px);
-            let ray = change_ray(pixel, change, e, e2, reach2);
+            let ray = change_ray(pixel, change, ray_near_change(pixel, e, e2, reach2), reach2);
             let hit = ray.near.hit;
             let jitter = ray.jitter;
             // The segment of the samples being visited: its slot, first lattice index and
@@ -374,10 +388,9 @@ fn scatter_changes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
 // one invocation per change-list entry adds the change's term to the sum of every lattice
 // sample within its radius that holds a valid sum (the gather's term without the sample's
 // weight: the same expressions on the same bits), so that the gather recomposites the
-// segments the changes reach from their sums alone. Where `scatter_touch` found a change that
-// reaches too many pixels, none is added (the gather then adds the changes at the dirty
-// samples); where this pass finds one, the sums it added are incomplete and the host starts a
-// new generation of them.
+// segments the changes reach from their sums alone. It runs where the marks did not
+// (`scatter_touch_sums` adds the sums as it marks); where it finds a change that reaches too
+// many pixels, the sums it added are incomplete and the host starts a new generation of them.
 @compute @workgroup_size(64)
 fn scatter_sums(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let index = linear_index(gid, groups);
@@ -387,7 +400,6 @@ fn scatter_sums(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
     let change = changes[index];
     let p = change.position;
     let kernel = pass_kernel(change.pass_index);
-    let r2 = kernel.x;
     let box = change_pixels(p);
     if (!box.fits) {
         return;
@@ -399,32 +411,38 @@ fn scatter_sums(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
     for (var py = box.first.y; py <= box.last.y; py++) {
         for (var px = box.first.x; px <= box.last.x; px++) {
             let pixel = u32(py) * scene.width + u32(px);
-            let ray = change_ray(pixel, change, e, e2, reach2);
-            for (var k = ray.k_first; k <= ray.k_last; k += 1.0) {
-                let sample = change_sample(ray, k, p);
-                let d2 = sample.y;
-                if (sample.x < ray.near.hit.x) {
-                    continue;
-                }
-                if (sample.x >= ray.near.hit.y) {
-                    break;
-                }
-                if (d2 >= r2) {
-                    continue;
-                }
-                let kept = sample_entry(pixel, k);
-                if (!sample_valid(kept)) {
-                    continue;
-                }
-                // The gather's term (photon/gather.wgsl), factor for factor.
-                let factor = lead * ray.phase * (1.0 - d2 / r2) * kernel.y;
-                var sum = accumulate(FixedSum(vec3<u32>(0u), vec3<u32>(0u)), change.power * factor, change.kind == CHANGE_SUBTRACT);
-                if (change.kind == CHANGE_REPLACE) {
-                    sum = accumulate(sum, change.old_power * factor, true);
-                }
-                sample_add(kept, sum);
-            }
+            let near = ray_near_change(pixel, e, e2, reach2);
+            add_to_sums(pixel, change, change_ray(pixel, change, near, reach2), kernel, lead);
         }
+    }
+}
+
+// Adds the change's terms to the valid sums of the pixel's lattice samples within its radius.
+fn add_to_sums(pixel: u32, change: PhotonChange, ray: ChangeRay, kernel: vec2<f32>, lead: f32) {
+    let r2 = kernel.x;
+    for (var k = ray.k_first; k <= ray.k_last; k += 1.0) {
+        let sample = change_sample(ray, k, change.position);
+        let d2 = sample.y;
+        if (sample.x < ray.near.hit.x) {
+            continue;
+        }
+        if (sample.x >= ray.near.hit.y) {
+            break;
+        }
+        if (d2 >= r2) {
+            continue;
+        }
+        let kept = sample_entry(pixel, k);
+        if (!sample_valid(kept)) {
+            continue;
+        }
+        // The gather's term (photon/gather.wgsl), factor for factor.
+        let factor = lead * ray.phase * (1.0 - d2 / r2) * kernel.y;
+        var sum = accumulate(FixedSum(vec3<u32>(0u), vec3<u32>(0u)), change.power * factor, change.kind == CHANGE_SUBTRACT);
+        if (change.kind == CHANGE_REPLACE) {
+            sum = accumulate(sum, change.old_power * factor, true);
+        }
+        sample_add(kept, sum);
     }
 }
 

@@ -691,8 +691,9 @@ fn delta_scatter_capacity_and_overflow_still_equal_a_full_recompute() {
         gather_budget: 100,
         ..defaults
     };
-    // With per-sample sums: the marks find the wide changes and none is scattered (above), or,
-    // without the marks, the scatter finds them after adding some, and the sums start anew.
+    // With per-sample sums: the marks (which add the changes to the sums as they go) or,
+    // without the marks, the scatter find the wide changes after adding some, and the sums
+    // start anew.
     let overflowing_unmarked = PhotonParams {
         invalidation: Invalidation::SpatialHistogram,
         ..overflowing
@@ -701,9 +702,16 @@ fn delta_scatter_capacity_and_overflow_still_equal_a_full_recompute() {
         sample_cache_bytes: 0,
         ..overflowing
     };
+    // Some changes fit the marks and some do not: the marks add the first to the sums before
+    // they meet the others.
+    let partly = PhotonParams {
+        gather_budget: 400,
+        ..defaults
+    };
     for (name, p) in [
         ("few slots", few_slots),
         ("overflow", overflowing),
+        ("overflow, partly", partly),
         ("overflow without marks", overflowing_unmarked),
         ("overflow, segment sums", segment_sums),
     ] {

@@ -222,6 +222,8 @@ pub struct PhotonPass {
     pub gather_sums: wgpu::ComputePipeline,
     pub composite: wgpu::ComputePipeline,
     pub scatter_touch: wgpu::ComputePipeline,
+    /// `scatter_touch` that also adds the changes to the per-sample sums (TOUCH_SUMS).
+    pub scatter_touch_sums: wgpu::ComputePipeline,
     pub scatter_weights: wgpu::ComputePipeline,
     pub scatter_changes: wgpu::ComputePipeline,
     pub scatter_apply: wgpu::ComputePipeline,
@@ -288,6 +290,13 @@ impl PhotonPass {
             gather_sums: gather_pipeline("photon gather sums", true),
             composite: pipeline("photon composite", &gather, "composite"),
             scatter_touch: pipeline("photon scatter touch", &scatter, "scatter_touch"),
+            scatter_touch_sums: layout.specialized_pipeline(
+                gpu,
+                "photon scatter touch sums",
+                &scatter,
+                "scatter_touch",
+                &[("TOUCH_SUMS", 1.0)],
+            ),
             scatter_weights: pipeline("photon scatter weights", &scatter, "scatter_weights"),
             scatter_changes: pipeline("photon scatter changes", &scatter, "scatter_changes"),
             scatter_apply: pipeline("photon scatter apply", &scatter, "scatter_apply"),

@@ -1563,33 +1563,19 @@ impl Photon {
 
     /// Marks and lists the segments the update's changes can reach (`scatter_touch`, over at
     /// most `entries` change-list entries), for gather_mark to take instead of the dirty cells
-    /// (or, where no opacity changed, to visit alone: `touched_only`); with
-    /// per-sample sums, then adds the changes to them (`scatter_sums`, which adds none where
-    /// the marks found a change too wide for one invocation).
+    /// (or, where no opacity changed, to visit alone: `touched_only`); with per-sample sums it
+    /// adds the changes to them in the same visit (`scatter_touch_sums`).
     fn touch(&self, engine: &Engine, scene: &Scene, query: Query, entries: u32) {
         self.write_scatter_uniforms(engine, scene, query);
         self.write_counter(engine, COUNTER_TOUCH, 1);
         self.touched.set(true);
         let pass = &engine.photon;
-        let mut encoder = Self::encoder(engine, "photon scatter touch");
-        let bg = &self.bind_group;
-        dispatch_linear(
-            &mut encoder,
-            "photon scatter touch",
-            &pass.scatter_touch,
-            bg,
-            entries,
-        );
-        if self.budget.sample_cache_samples > 0 {
-            dispatch_linear(
-                &mut encoder,
-                "photon scatter sums",
-                &pass.scatter_sums,
-                bg,
-                entries,
-            );
-        }
-        engine.gpu.queue.submit([encoder.finish()]);
+        let (label, pipeline) = if self.budget.sample_cache_samples > 0 {
+            ("photon scatter touch sums", &pass.scatter_touch_sums)
+        } else {
+            ("photon scatter touch", &pass.scatter_touch)
+        };
+        self.submit_linear(engine, label, pipeline, entries);
     }
 
     /// Where an update's segments to compute are only those `touch` listed (no opacity
@@ -1622,7 +1608,7 @@ impl Photon {
 
     /// With per-sample sums, after an update's `gather_mark` (its counter `words`): whether
     /// the update's changes are now in every valid sum. `touch` added them where its marks
-    /// stand; otherwise, unless the changes far outnumber the listed segments,
+    /// stand (where they do not, a new generation starts); otherwise, unless the changes far outnumber the listed segments,
     /// `scatter_sums` adds them now (one blocking read: a change too wide for it leaves the
     /// sums incomplete, and a new generation starts). Where the change list overflowed the
     /// sums cannot be updated: a new generation. Otherwise the gather adds the changes at the
@@ -1641,7 +1627,12 @@ impl Photon {
             self.new_sum_generation();
             false
         } else if words[COUNTER_TOUCH] != 0 {
-            words[COUNTER_SCATTER_OVERFLOW] == 0
+            // A change too wide for the marks left the sums that `touch` added incomplete.
+            let complete = words[COUNTER_SCATTER_OVERFLOW] == 0;
+            if !complete {
+                self.new_sum_generation();
+            }
+            complete
         } else if !self.sums_by_gather
             && changes as u64 <= SUMS_SCATTER_CHANGES_PER_SEGMENT * words[COUNTER_SEGMENTS] as u64
         {
