@@ -102,7 +102,9 @@ struct PhotonUniforms {
     sample_cache_samples: u32,
     cache_generation: u32,
     sums_applied: u32,
-    pad_cache: u32,
+    // Whether the update's marks (scatter_touch) stand for the dirty cells: no change was too
+    // wide for them, and the change list holds every change (the host reads it after them).
+    marks_stand: u32,
     // Progressive radius reduction (Knaus & Zwicker 2011): the photons of pass i are gathered
     // with their own radius r_i <= radius (the grid's cell edge), r_i³ = r_0³ · Π_{k<i} (k + α)
     // / (k + 1). Entry i / 2 holds pass i's (r_i², (r_0 / r_i)³) in .xy (even i) or .zw (odd

@@ -97,14 +97,6 @@ fn gather_mark_touched(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     mark_segment(gather_list[scene.width * scene.height * photon.segments + index]);
 }
 
-// Whether the delta scatter's marks cover every change (photon/scatter.wgsl): scatter_touch ran,
-// found no change too wide for it, and the change list holds them all.
-fn marks_stand() -> bool {
-    return atomicLoad(&counters[COUNTER_TOUCH]) != 0u
-        && atomicLoad(&counters[COUNTER_SCATTER_OVERFLOW]) == 0u
-        && atomicLoad(&counters[COUNTER_CHANGES]) <= photon.change_capacity;
-}
-
 // Lists segment id for the gather if it must be computed, as a full gather or an update
 // needs, and leaves its delta-scatter mark cleared.
 fn mark_segment(id: u32) {
@@ -113,7 +105,7 @@ fn mark_segment(id: u32) {
         touched = atomicLoad(&scatter[id]) == SEGMENT_TOUCHED;
         atomicStore(&scatter[id], SEGMENT_UNTOUCHED);
     }
-    if (photon.mode == MODE_UPDATE && !touched && photon.spatial == SPATIAL_CELLS && marks_stand()) {
+    if (photon.mode == MODE_UPDATE && !touched && photon.spatial == SPATIAL_CELLS && photon.marks_stand != 0u) {
         // Most segments of an opacity edit: neither their opacity nor a change reaches them,
         // which the rest would find only after tracing their ray.
         let old = segments[id];
@@ -142,7 +134,7 @@ fn mark_segment(id: u32) {
             if (photon.spatial == SPATIAL_AXES) {
                 stale = spatial_hit(scene.eye + dir * bounds.x, scene.eye + dir * bounds.y);
             } else if (photon.spatial == SPATIAL_CELLS) {
-                if (marks_stand()) {
+                if (photon.marks_stand != 0u) {
                     stale = touched;
                 } else {
                     stale = cells_hit(pixel, hit, bounds.x, bounds.y, dir);

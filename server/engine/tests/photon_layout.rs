@@ -61,7 +61,7 @@ fn photon_structs_match_wgsl() {
                 record_capacity, collision_query_lo, collision_query_hi, scatter_capacity,
                 scatter_samples, census, round_first, roulette_survival, roulette_from,
                 path_slots, inline_slots, chunks_per_pass, chunk_counts_at, sample_cache_samples,
-                cache_generation, sums_applied, pad_cache, pass_kernels),
+                cache_generation, sums_applied, marks_stand, pass_kernels),
         );
         assert_layout(
             &module,

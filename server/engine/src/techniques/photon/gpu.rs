@@ -59,7 +59,8 @@ pub struct PhotonUniforms {
     pub sample_cache_samples: u32,
     pub cache_generation: u32,
     pub sums_applied: u32,
-    pub pad_cache: u32,
+    /// Whether the update's marks stand for the dirty cells (`scatter_touch`).
+    pub marks_stand: u32,
     /// Per pass (r_i², (r_0 / r_i)³), two passes per entry (`pass_kernels`).
     pub pass_kernels: [[f32; 4]; PASS_KERNEL_ENTRIES],
 }

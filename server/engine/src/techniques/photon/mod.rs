@@ -1029,9 +1029,9 @@ pub struct Photon {
     sums_complete: Cell<bool>,
     /// Set by `sum_changes_in_gather`: updates never scatter their changes into the sums.
     sums_by_gather: bool,
-    /// Whether the update under way marked (and listed) the segments its changes reach
-    /// (`touch`).
-    touched: Cell<bool>,
+    /// Where the update under way marked (and listed) the segments its changes reach (`touch`)
+    /// and the marks stand for the dirty cells, how many segments they listed.
+    marks: Cell<Option<u32>>,
     /// Whether the records' grid is older than the records (an update that gathered no
     /// segment afresh did not need it).
     records_grid_behind: Cell<bool>,
@@ -1100,7 +1100,7 @@ impl Photon {
             sums_applied: Cell::new(false),
             sums_complete: Cell::new(false),
             sums_by_gather: false,
-            touched: Cell::new(false),
+            marks: Cell::new(None),
             records_grid_behind: Cell::new(false),
             last_uniforms: Cell::new(bytemuck::Zeroable::zeroed()),
             census: Cell::new(false),
@@ -1261,7 +1261,7 @@ impl Photon {
             sample_cache_samples: self.budget.sample_cache_samples as u32,
             cache_generation: self.cache_generation.get(),
             sums_applied: self.sums_applied.get() as u32,
-            pad_cache: 0,
+            marks_stand: self.marks.get().is_some() as u32,
             pass_kernels: pass_kernels(r, self.params.radius_alpha),
         };
         engine
@@ -1416,7 +1416,7 @@ impl Photon {
                 ..Dispatch::default()
             },
         );
-        let touched_only = self.touched_only(engine, mode, query)?;
+        let touched_only = self.touched_only(mode, query);
         // gather_mark lists afresh.
         self.write_counter(engine, COUNTER_LIST, 0);
         let pass = &engine.photon;
@@ -1564,11 +1564,19 @@ impl Photon {
     /// Marks and lists the segments the update's changes can reach (`scatter_touch`, over at
     /// most `entries` change-list entries), for gather_mark to take instead of the dirty cells
     /// (or, where no opacity changed, to visit alone: `touched_only`); with per-sample sums it
-    /// adds the changes to them in the same visit (`scatter_touch_sums`).
-    fn touch(&self, engine: &Engine, scene: &Scene, query: Query, entries: u32) {
+    /// adds the changes to them in the same visit (`scatter_touch_sums`). Then reads whether
+    /// the marks stand for the dirty cells (`marks`; one blocking read): no change was too
+    /// wide for them, and the list holds all `changes`.
+    fn touch(
+        &self,
+        engine: &Engine,
+        scene: &Scene,
+        query: Query,
+        entries: u32,
+        changes: u64,
+    ) -> Result<(), EngineError> {
         self.write_scatter_uniforms(engine, scene, query);
         self.write_counter(engine, COUNTER_TOUCH, 1);
-        self.touched.set(true);
         let pass = &engine.photon;
         let (label, pipeline) = if self.budget.sample_cache_samples > 0 {
             ("photon scatter touch sums", &pass.scatter_touch_sums)
@@ -1576,25 +1584,21 @@ impl Photon {
             ("photon scatter touch", &pass.scatter_touch)
         };
         self.submit_linear(engine, label, pipeline, entries);
+        let words = self.counter_words(engine)?;
+        let stand = words[COUNTER_SCATTER_OVERFLOW] == 0 && changes <= self.budget.change_entries;
+        self.marks.set(stand.then_some(words[COUNTER_LIST + 1]));
+        Ok(())
     }
 
     /// Where an update's segments to compute are only those `touch` listed (no opacity
     /// changed, and its marks stand for the dirty cells: no change was too wide for them and
-    /// the change list holds every change), how many it listed (one blocking read); `None`
-    /// where `gather_mark` must visit every segment.
-    fn touched_only(
-        &self,
-        engine: &Engine,
-        mode: u32,
-        query: Query,
-    ) -> Result<Option<u32>, EngineError> {
-        if mode != MODE_UPDATE || !self.touched.get() || query.opacity != 0 {
-            return Ok(None);
+    /// the change list holds every change), how many it listed; `None` where `gather_mark`
+    /// must visit every segment.
+    fn touched_only(&self, mode: u32, query: Query) -> Option<u32> {
+        if mode != MODE_UPDATE || query.opacity != 0 {
+            return None;
         }
-        let words = self.counter_words(engine)?;
-        let marks_stand = words[COUNTER_SCATTER_OVERFLOW] == 0
-            && words[COUNTER_CHANGES] as u64 <= self.budget.change_entries;
-        Ok(marks_stand.then_some(words[COUNTER_LIST + 1]))
+        self.marks.get()
     }
 
     /// Starts a new generation of the per-sample photon sums: every kept sum is invalid.
@@ -1608,8 +1612,8 @@ impl Photon {
 
     /// With per-sample sums, after an update's `gather_mark` (its counter `words`): whether
     /// the update's changes are now in every valid sum. `touch` added them where its marks
-    /// stand (where they do not, a new generation starts); otherwise, unless the changes far outnumber the listed segments,
-    /// `scatter_sums` adds them now (one blocking read: a change too wide for it leaves the
+    /// stand (where they do not, a new generation starts); otherwise, unless the changes far
+    /// outnumber the listed segments, `scatter_sums` adds them now (one blocking read: a change too wide for it leaves the
     /// sums incomplete, and a new generation starts). Where the change list overflowed the
     /// sums cannot be updated: a new generation. Otherwise the gather adds the changes at the
     /// dirty samples of the segments it recomposites (false).
@@ -2039,7 +2043,7 @@ impl Photon {
             0,
             &vec![0u8; self.budget.counter_bytes as usize],
         );
-        self.touched.set(false);
+        self.marks.set(None);
         self.write_scene(engine, scene)?;
         let listed = self.list_retraced(engine, scene, paths, query)?;
         self.trace(engine, scene, MODE_UPDATE, 0, listed, query);
@@ -2058,21 +2062,24 @@ impl Photon {
                 ..photons_report(&words, paths, segments)
             }));
         }
-        // The dirty cells of the changes the list holds (the trace marked the rest); a
-        // full regather needs none.
         let changes = self.counter(engine, COUNTER_CHANGES)? as u64;
-        self.submit_linear(
-            engine,
-            "photon trace mark changes",
-            &engine.photon.trace_mark_changes,
-            changes.min(self.budget.change_entries) as u32,
-        );
         if self.params.invalidation == Invalidation::DirtyCells
             && self.budget.scatter_capacity > 0
             && !self.sums_by_gather
             && let Some(entries) = touch_entries(changes, segments, self.budget.change_entries)
         {
-            self.touch(engine, scene, query, entries);
+            self.touch(engine, scene, query, entries, changes)?;
+        }
+        // The dirty cells of the changes the list holds (the trace marked the rest); a full
+        // regather needs none, and neither does an update whose marks stand with per-sample
+        // sums: the marks added the changes to the sums, and gather_mark takes the marks.
+        if self.marks.get().is_none() || self.budget.sample_cache_samples == 0 {
+            self.submit_linear(
+                engine,
+                "photon trace mark changes",
+                &engine.photon.trace_mark_changes,
+                changes.min(self.budget.change_entries) as u32,
+            );
         }
         self.begin_gather(engine, scene, MODE_UPDATE, query)?;
         self.finish_gather(engine, scene)?;
