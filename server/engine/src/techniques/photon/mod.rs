@@ -1613,10 +1613,10 @@ impl Photon {
     /// With per-sample sums, after an update's `gather_mark` (its counter `words`): whether
     /// the update's changes are now in every valid sum. `touch` added them where its marks
     /// stand (where they do not, a new generation starts); otherwise, unless the changes far
-    /// outnumber the listed segments, `scatter_sums` adds them now (one blocking read: a change too wide for it leaves the
-    /// sums incomplete, and a new generation starts). Where the change list overflowed the
-    /// sums cannot be updated: a new generation. Otherwise the gather adds the changes at the
-    /// dirty samples of the segments it recomposites (false).
+    /// outnumber the listed segments, `scatter_sums` adds them now (one blocking read: a
+    /// change too wide for it leaves the sums incomplete, and a new generation starts). Where
+    /// the change list overflowed the sums cannot be updated: a new generation. Otherwise the
+    /// gather adds the changes at the dirty samples of the segments it recomposites (false).
     fn add_changes_to_sums(
         &self,
         engine: &Engine,
