@@ -208,7 +208,9 @@ struct Segment {
     color_hi: vec3<u32>,
     hist_lo: u32,
     hist_hi: u32,
-    pad0: u32,
+    // 1 where the segment's march ended at its transmittance cut-off (samples past it were
+    // never gathered); gather_mark counts the opacity-stale ones (COUNTER_CUT).
+    cut_off: u32,
     pad1: u32,
     pad2: u32,
 }
@@ -247,8 +249,10 @@ const COUNTER_SCATTER_OVERFLOW: u32 = 14u;
 const COUNTER_TOUCH: u32 = 15u;
 // Listed paths an update only recoloured (photon/trace.wgsl): no flight of theirs was tracked.
 const COUNTER_RECOLOURED: u32 = 16u;
+// Opacity-stale segments whose last march ended at its cut-off (Segment::cut_off).
+const COUNTER_CUT: u32 = 17u;
 // Dirty-cell bits follow the counters.
-const COUNTER_DIRTY: u32 = 17u;
+const COUNTER_DIRTY: u32 = 18u;
 const GRID_RECORDS: u32 = 0u;
 const GRID_CHANGES: u32 = 1u;
 const CHANGE_ADD: u32 = 0u;

@@ -130,6 +130,9 @@ fn mark_segment(id: u32) {
     if (photon.mode == MODE_UPDATE) {
         let old = segments[id];
         stale = hist_hits_opacity_query(old.hist_lo, old.hist_hi);
+        if (stale && old.cut_off != 0u) {
+            atomicAdd(&counters[COUNTER_CUT], 1u);
+        }
         if (!stale) {
             if (photon.spatial == SPATIAL_AXES) {
                 stale = spatial_hit(scene.eye + dir * bounds.x, scene.eye + dir * bounds.y);
@@ -417,7 +420,8 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
         st.k += 1.0;
         st.cell = NEXT_SAMPLE;
     }
-    segments[id] = Segment(st.color_lo, st.transmit, st.color_hi, st.hist_lo, st.hist_hi, 0u, 0u, 0u);
+    let cut_off = select(0u, 1u, st.transmit < SEGMENT_T_CUTOFF);
+    segments[id] = Segment(st.color_lo, st.transmit, st.color_hi, st.hist_lo, st.hist_hi, cut_off, 0u, 0u);
 }
 
 @compute @workgroup_size(64)

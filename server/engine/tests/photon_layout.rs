@@ -6,11 +6,11 @@ use std::mem::{offset_of, size_of};
 use voxlight_engine::shaders;
 use voxlight_engine::techniques::photon::gpu::{
     CHANGE_ADD, CHANGE_REPLACE, CHANGE_SUBTRACT, CHUNK_NONE, CHUNK_SLOTS, COUNTER_CHANGED,
-    COUNTER_CHANGES, COUNTER_DELTA, COUNTER_LIST, COUNTER_RECOLOURED, COUNTER_RETRACED,
-    COUNTER_SCATTER, COUNTER_SCATTER_OVERFLOW, COUNTER_SEGMENTS, COUNTER_SPATIAL, COUNTER_TOUCH,
-    COUNTER_WORDS, GRID_CHANGES, GRID_RECORDS, GatherState, MODE_FULL, MODE_UPDATE, PhotonChange,
-    PhotonEmitter, PhotonPath, PhotonRecord, PhotonUniforms, SAMPLE_WORDS, SLOT_WORDS,
-    SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
+    COUNTER_CHANGES, COUNTER_CUT, COUNTER_DELTA, COUNTER_LIST, COUNTER_RECOLOURED,
+    COUNTER_RETRACED, COUNTER_SCATTER, COUNTER_SCATTER_OVERFLOW, COUNTER_SEGMENTS, COUNTER_SPATIAL,
+    COUNTER_TOUCH, COUNTER_WORDS, GRID_CHANGES, GRID_RECORDS, GatherState, MODE_FULL, MODE_UPDATE,
+    PhotonChange, PhotonEmitter, PhotonPath, PhotonRecord, PhotonUniforms, SAMPLE_WORDS,
+    SLOT_WORDS, SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
 };
 
 fn assert_layout(module: &naga::Module, name: &str, size: usize, fields: &[(&str, usize)]) {
@@ -92,7 +92,7 @@ fn photon_structs_match_wgsl() {
             &module,
             "Segment",
             size_of::<Segment>(),
-            fields!(Segment: color_lo, transmittance, color_hi, hist_lo, hist_hi, pad0, pad1, pad2),
+            fields!(Segment: color_lo, transmittance, color_hi, hist_lo, hist_hi, cut_off, pad1, pad2),
         );
         assert_layout(
             &module,
@@ -138,6 +138,7 @@ fn photon_constants_match_wgsl() {
         ("COUNTER_SCATTER_OVERFLOW", COUNTER_SCATTER_OVERFLOW as u32),
         ("COUNTER_TOUCH", COUNTER_TOUCH as u32),
         ("COUNTER_RECOLOURED", COUNTER_RECOLOURED as u32),
+        ("COUNTER_CUT", COUNTER_CUT as u32),
         ("SLOT_WORDS", SLOT_WORDS as u32),
         ("SAMPLE_WORDS", SAMPLE_WORDS as u32),
         ("GRID_RECORDS", GRID_RECORDS),

@@ -129,7 +129,8 @@ pub struct Segment {
     pub color_hi: [u32; 3],
     pub hist_lo: u32,
     pub hist_hi: u32,
-    pub pad0: u32,
+    /// 1 where the segment's march ended at its transmittance cut-off.
+    pub cut_off: u32,
     pub pad1: u32,
     pub pad2: u32,
 }
@@ -156,8 +157,9 @@ pub const EMIT_ENVIRONMENT: u32 = 2;
 /// `counters` words: retraced paths, changed records, recomputed segments, spatial 3×2,
 /// listed segments (2), change-list entries, segments updated from the changes alone, delta
 /// scatter slots taken, delta scatter overflows, whether the scatter's marks stand for the
-/// dirty cells, listed paths only recoloured; the dirty-cell bits follow.
-pub const COUNTER_WORDS: usize = 17;
+/// dirty cells, listed paths only recoloured, opacity-stale segments whose march ended at its
+/// cut-off; the dirty-cell bits follow.
+pub const COUNTER_WORDS: usize = 18;
 pub const COUNTER_RETRACED: usize = 0;
 pub const COUNTER_CHANGED: usize = 1;
 pub const COUNTER_SEGMENTS: usize = 2;
@@ -170,6 +172,7 @@ pub const COUNTER_SCATTER: usize = 13;
 pub const COUNTER_SCATTER_OVERFLOW: usize = 14;
 pub const COUNTER_TOUCH: usize = 15;
 pub const COUNTER_RECOLOURED: usize = 16;
+pub const COUNTER_CUT: usize = 17;
 /// Words per kept sample sum (`SAMPLE_WORDS`: lo and hi words of three channels, generation).
 pub const SAMPLE_WORDS: usize = 7;
 /// Words per delta-scatter slot (photon/scatter.wgsl).

@@ -42,7 +42,7 @@ use voxlight_protocol::{Light, TechniqueDetails, TransferFunction};
 use crate::scene_gpu::{SceneUniforms, default_step};
 use crate::technique::{StepReport, Technique, TechniqueStats};
 use crate::techniques::photon::gpu::{
-    COUNTER_CHANGED, COUNTER_CHANGES, COUNTER_DELTA, COUNTER_LIST, COUNTER_RECOLOURED,
+    COUNTER_CHANGED, COUNTER_CHANGES, COUNTER_CUT, COUNTER_DELTA, COUNTER_LIST, COUNTER_RECOLOURED,
     COUNTER_RETRACED, COUNTER_SCATTER, COUNTER_SCATTER_OVERFLOW, COUNTER_SEGMENTS, COUNTER_SPATIAL,
     COUNTER_TOUCH, COUNTER_WORDS, EMIT_DIRECTIONAL, EMIT_ENVIRONMENT, EMIT_POINT, GRID_CHANGES,
     GRID_RECORDS, GatherState, MODE_FULL, MODE_UPDATE, PASS_KERNEL_ENTRIES, PhotonBindings,
@@ -297,6 +297,9 @@ struct Marked {
     scatter: u32,
     /// Change-list entries the update wrote (`COUNTER_CHANGES`; may pass the list's length).
     changes: u32,
+    /// Of the segments whose opacity changed, those whose last march ended at its
+    /// transmittance cut-off (`COUNTER_CUT`): samples past it were never gathered.
+    cut: u32,
 }
 
 impl Marked {
@@ -306,6 +309,7 @@ impl Marked {
             delta: words[COUNTER_DELTA],
             scatter: words[COUNTER_SCATTER],
             changes: words[COUNTER_CHANGES],
+            cut: words[COUNTER_CUT],
         }
     }
 }
@@ -364,13 +368,17 @@ impl GridPlan {
     /// An update's gather with per-sample sums: segments recomposite from the sums, a sum
     /// not kept is gathered from the records' grid, and where the changes are not yet in
     /// the sums (`applied` false) the dirty samples add them from the change grid. A segment
-    /// whose opacity did not change gathers the samples it gathered before, so where every
-    /// such sample holds a valid sum (`complete`) and no segment's opacity changed, the
-    /// records' grid is not needed.
+    /// whose opacity did not change gathers the samples it gathered before, and so does one
+    /// whose opacity only fell (no bin's rose: `opacity_rose` false) unless its last march
+    /// ended at its cut-off (`Marked::cut`): a sample it gathers now had opacity then, and was
+    /// gathered. So where every sample gathered since the last full gather holds a valid sum
+    /// (`complete`), the records' grid is needed only for the segments whose opacity rose or
+    /// that were cut off.
     fn summed(
         marked: Marked,
         applied: bool,
         complete: bool,
+        opacity_rose: bool,
         records: u32,
         change_entries: u32,
     ) -> Self {
@@ -380,7 +388,9 @@ impl GridPlan {
             0
         };
         Self {
-            records_grid: marked.segments > 0 && (marked.segments > marked.delta || !complete),
+            records_grid: marked.segments > 0
+                && (!complete
+                    || (marked.segments > marked.delta && (opacity_rose || marked.cut > 0))),
             scatter: None,
             from_changes,
             delta: from_changes,
@@ -1438,7 +1448,8 @@ impl Photon {
             let marked = Marked::from_words(&words);
             let scattered = if applied { marked.delta } else { 0 };
             let complete = self.sums_complete.get();
-            let plan = GridPlan::summed(marked, applied, complete, records, change_entries);
+            let rose = query.rejection != 0;
+            let plan = GridPlan::summed(marked, applied, complete, rose, records, change_entries);
             (plan, Some(scattered))
         } else {
             let marked = Marked::from_words(&self.counter_words(engine)?);
@@ -2434,6 +2445,7 @@ mod tests {
             delta,
             scatter,
             changes,
+            cut: 0,
         }
     }
 
@@ -2458,11 +2470,21 @@ mod tests {
     fn an_update_with_sample_sums_builds_only_the_grids_its_samples_read() {
         // 40 segments listed, 30 of them from the changes alone (no opacity change), 35 changes
         // in a list of 50.
-        let plan = |m, applied, complete| GridPlan::summed(m, applied, complete, 900, 50);
-        // The changes are in the sums: a segment whose opacity changed may gather a sample
+        let plan = |m, applied, complete| GridPlan::summed(m, applied, complete, true, 900, 50);
+        // The changes are in the sums: a segment whose opacity rose may gather a sample
         // afresh; the others recomposite from valid sums.
         assert_eq!(
             plan(marked(40, 30, 0, 35), true, true).grids(false),
+            vec![RECORDS]
+        );
+        // Where opacity only fell, only a segment that was cut off may.
+        let fell = |m| GridPlan::summed(m, true, true, false, 900, 50).grids(false);
+        assert_eq!(fell(marked(40, 30, 0, 35)), vec![]);
+        assert_eq!(
+            fell(Marked {
+                cut: 1,
+                ..marked(40, 30, 0, 35)
+            }),
             vec![RECORDS]
         );
         assert_eq!(plan(marked(30, 30, 0, 35), true, true).grids(false), vec![]);
