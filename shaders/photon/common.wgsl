@@ -304,8 +304,8 @@ const SPATIAL_CELLS: u32 = 2u;
 @group(0) @binding(17) var<storage, read_write> chunks: array<atomic<u32>>;
 // The per-sample photon sums (sample_cache_samples > 0): per pixel and lattice index k, the sum
 // of fixed(power · sum_lead() · phase · kernel) over the photons within the radius
-// (64-bit fixed point, lo then hi words per channel) and the generation it was formed in
-// (SAMPLE_WORDS words). A segment is then Σ_k fixed(f32(P_k) · transport(T_k, σ_k)), so a
+// (64-bit fixed point, lo then hi words per channel), the generation it was formed in, and the
+// weight its segment's last gather gave it (SAMPLE_WORDS words; sample_weight_word). A segment is then Σ_k fixed(f32(P_k) · transport(T_k, σ_k)), so a
 // segment whose opacity changed recomposites from its samples' sums instead of gathering its
 // photons again, and a changed photon updates the sums it reaches (integer sums, exact).
 @group(0) @binding(18) var<storage, read_write> sample_sums: array<atomic<u32>>;
@@ -318,7 +318,7 @@ const SLOT_WORDS: u32 = 8u;
 const SEGMENT_UNTOUCHED: u32 = 0u;
 const SEGMENT_TOUCHED: u32 = 1u;
 
-const SAMPLE_WORDS: u32 = 7u;
+const SAMPLE_WORDS: u32 = 8u;
 const SAMPLE_NONE: u32 = 0xffffffffu;
 
 // The first word of the photon sum of pixel's lattice sample k (SAMPLE_NONE: not kept; the
@@ -362,6 +362,23 @@ fn sample_keep(entry: u32, sum: FixedSum) {
 fn sample_write(entry: u32, sum: FixedSum) {
     sample_keep(entry, sum);
     atomicStore(&sample_sums[entry + 6u], photon.cache_generation);
+}
+
+// A sample's weight in its segment as the segment's last gather found it (f32 bits):
+// transport(T_k, σ_k) where it was gathered, 0 where it was empty (σ ≤ 0), SAMPLE_PAST_CUTOFF
+// at the first sample past the segment's transmittance cut-off (the march ended there). Where
+// no opacity the segment meets changed, its samples' weights are as before, so a colour edit
+// recomposites the segment from sums and weights alone (gather.wgsl, recomposite_from_sums).
+fn sample_weight_word(entry: u32) -> u32 {
+    return entry + 7u;
+}
+
+const SAMPLE_PAST_CUTOFF: f32 = -1.0;
+
+fn sample_set_weight(entry: u32, weight: f32) {
+    if (entry != SAMPLE_NONE) {
+        atomicStore(&sample_sums[sample_weight_word(entry)], bitcast<u32>(weight));
+    }
 }
 
 fn sample_forget(entry: u32) {

@@ -149,9 +149,9 @@ fn mark_segment(id: u32) {
             delta = stale && atomicLoad(&counters[COUNTER_CHANGES]) <= photon.change_capacity;
             if (delta && photon.sample_cache_samples > 0u) {
                 // With per-sample sums the segment recomposites from them (counted as updated
-                // by the changes alone: no photon of the records is visited).
+                // by the changes alone: no photon of the records is visited), by their kept
+                // weights where it can (recomposite_from_sums).
                 atomicAdd(&counters[COUNTER_DELTA], 1u);
-                delta = false;
             } else if (delta) {
                 start.color_lo = old.color_lo;
                 start.color_hi = old.color_hi;
@@ -216,6 +216,51 @@ fn forget_dirty_sums() -> bool {
     return SAMPLE_SUMS && photon.mode == MODE_UPDATE && photon.sums_applied == 0u;
 }
 
+// A recomposited segment's radiance, or complete = false where a sample lacks its kept sum or
+// weight, or the loop budget ran out: the segment is then gathered.
+struct Recomposite {
+    complete: bool,
+    sum: FixedSum,
+}
+
+// With per-sample sums, the radiance of a segment whose samples' weights are as its last
+// gather kept them (no opacity it meets changed), from their sums: Σ_k fixed(f32(P_k) · w_k),
+// the very terms the gather adds (photon/common.wgsl, sample_weight_word), over the same
+// lattice samples, without sampling the volume.
+fn recomposite_from_sums(pixel: u32, hit: vec2<f32>, bounds: vec2<f32>, jitter: f32, used: ptr<function, u32>) -> Recomposite {
+    var sum = FixedSum(vec3<u32>(0u), vec3<u32>(0u));
+    var k = first_lattice_index(hit, bounds.x, jitter);
+    loop {
+        if (*used >= photon.round_budget) {
+            return Recomposite(false, sum);
+        }
+        *used += 1u;
+        let t = hit.x + (k + jitter) * photon.gather_step;
+        if (t >= bounds.y) {
+            break;
+        }
+        if (t >= bounds.x) {
+            let entry = sample_entry(pixel, k);
+            if (entry == SAMPLE_NONE) {
+                return Recomposite(false, sum);
+            }
+            let weight = bitcast<f32>(atomicLoad(&sample_sums[sample_weight_word(entry)]));
+            if (weight < 0.0) {
+                break;
+            }
+            if (weight > 0.0) {
+                if (!sample_valid(entry)) {
+                    return Recomposite(false, sum);
+                }
+                let acc = sample_read(entry);
+                sum = accumulate(sum, fixed_to_f32(acc.lo, acc.hi) * (weight * FIXED_ONE), false);
+            }
+        }
+        k += 1.0;
+    }
+    return Recomposite(true, sum);
+}
+
 @compute @workgroup_size(64)
 fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let invocation = linear_index(gid, groups);
@@ -241,10 +286,25 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
     let r2 = photon.radius * photon.radius;
     let dims = vec3<i32>(photon.grid_dims);
     let budget = photon.round_budget;
-    var st = gather_state[id];
     // This invocation's loop iterations; each loop counts its own so that the sum stays
     // within the budget whatever the nesting.
     var used = 0u;
+    var listed = entry;
+    if (cached && id != entry) {
+        // A segment whose opacity did not change, with the update's changes in its samples'
+        // sums (sums_applied): its kept weights are its samples' as they stand.
+        if (photon.sums_applied != 0u) {
+            let sum = recomposite_from_sums(pixel, hit, bounds, jitter, &used);
+            if (sum.complete) {
+                segments[id].color_lo = sum.sum.lo;
+                segments[id].color_hi = sum.sum.hi;
+                return;
+            }
+        }
+        // Gathered as any other (a later round too).
+        listed = id;
+    }
+    var st = gather_state[id];
     // The current sample (recomputed when resuming inside one): position, extinction, the
     // factor its photons' terms start with, its kept sum's entry, the grid it visits, and the
     // sum its terms join (the segment's, or with per-sample sums the sample's).
@@ -265,7 +325,7 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
     }
     loop {
         if (used >= budget) {
-            defer_segment(entry, st, segment_count);
+            defer_segment(listed, st, segment_count);
             return;
         }
         used += 1u;
@@ -290,6 +350,9 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
                 break;
             }
             if (st.transmit < SEGMENT_T_CUTOFF) {
+                if (cached) {
+                    sample_set_weight(sample_entry(pixel, st.k), SAMPLE_PAST_CUTOFF);
+                }
                 if (forget_dirty_sums()) {
                     st.cell = FORGET_TAIL;
                     continue;
@@ -304,6 +367,9 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
             sigma = classify(v).a * scene.density_scale;
             kept = sample_entry(pixel, st.k);
             if (sigma <= 0.0) {
+                if (cached) {
+                    sample_set_weight(kept, 0.0);
+                }
                 if (forget_dirty_sums() && dirty(x)) {
                     sample_forget(kept);
                 }
@@ -398,7 +464,7 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
                     st.color_lo = acc.lo;
                     st.color_hi = acc.hi;
                 }
-                defer_segment(entry, st, segment_count);
+                defer_segment(listed, st, segment_count);
                 return;
             }
             st.rank = 0u;
@@ -408,7 +474,9 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
             if (st.cell == 27u) {
                 sample_write(kept, acc);
             }
-            let radiance = fixed_to_f32(acc.lo, acc.hi) * (transport(st.transmit, sigma) * FIXED_ONE);
+            let weight = transport(st.transmit, sigma);
+            sample_set_weight(kept, weight);
+            let radiance = fixed_to_f32(acc.lo, acc.hi) * (weight * FIXED_ONE);
             let sum = accumulate(FixedSum(st.color_lo, st.color_hi), radiance, false);
             st.color_lo = sum.lo;
             st.color_hi = sum.hi;

@@ -173,8 +173,8 @@ pub const COUNTER_SCATTER_OVERFLOW: usize = 14;
 pub const COUNTER_TOUCH: usize = 15;
 pub const COUNTER_RECOLOURED: usize = 16;
 pub const COUNTER_CUT: usize = 17;
-/// Words per kept sample sum (`SAMPLE_WORDS`: lo and hi words of three channels, generation).
-pub const SAMPLE_WORDS: usize = 7;
+/// Words per kept sample sum (`SAMPLE_WORDS`: lo and hi words of three channels, generation, weight).
+pub const SAMPLE_WORDS: usize = 8;
 /// Words per delta-scatter slot (photon/scatter.wgsl).
 pub const SLOT_WORDS: usize = 8;
 /// `grid_pass` uniform: which grid the grid kernels build.
