@@ -1007,6 +1007,64 @@ fn per_sample_sums_stay_exact_when_samples_hide_and_show_again() {
     }
 }
 
+/// A segment whose opacity an edit did not change recomposites from its samples' kept sums and
+/// the weights its last march gave them (recomposite_from_sums). Colour edits follow edits that
+/// end the tall block's marches earlier at their transmittance cut-off (half its opacity, then
+/// all of it again) and that empty its samples (the block gone): the weights past the new
+/// cut-off and of the emptied samples are no longer those of the first march. Then, with a
+/// change list too short for one edit, colour edits follow an update that started a new
+/// generation of sums, some of which no gather has formed yet.
+#[test]
+fn colour_edits_recomposite_from_the_weights_of_each_segments_last_march() {
+    let volume = cornell_volume(32);
+    let p = params(Invalidation::DirtyCells);
+    let mut s = cornell_scene(40, cornell_with(&[TALL_BLOCK_HALF]));
+    // Dense enough that the blocks end a segment's march within a few samples.
+    s.params.density_scale = 100.0;
+    let mut photon = converged(&volume, &s, p);
+    assert!(photon.budget().sample_cache_samples > 0);
+    let edits = [
+        cornell_with(&[]),
+        cornell_with(&[SPHERE_RED]),
+        cornell_with(&[SPHERE_RED, TALL_BLOCK_GONE]),
+        cornell_with(&[SPHERE_GREEN, TALL_BLOCK_GONE]),
+    ];
+    for (i, tf) in edits.into_iter().enumerate() {
+        let what = format!("edit {i}");
+        let report = edit_equals_full(&mut photon, &volume, &mut s, tf, p, &what);
+        eprintln!("{what}: {report:?}");
+        if i % 2 == 1 {
+            // A colour edit: segments recomposited by the changes alone.
+            assert!(report.segments_delta > 0, "{what}: {report:?}");
+        }
+    }
+    let p = PhotonParams {
+        change_list: 64,
+        ..params(Invalidation::DirtyCells)
+    };
+    let mut s = cornell_scene(40, cornell_with(&[]));
+    s.params.density_scale = 100.0;
+    let mut photon = converged(&volume, &s, p);
+    let edits = [
+        cornell_with(&[TALL_BLOCK_GONE]),
+        cornell_with(&[SPHERE_RED, TALL_BLOCK_GONE]),
+        cornell_with(&[SPHERE_GREEN, TALL_BLOCK_GONE]),
+    ];
+    for (i, tf) in edits.into_iter().enumerate() {
+        let what = format!("short list, edit {i}");
+        let report = edit_equals_full(&mut photon, &volume, &mut s, tf, p, &what);
+        eprintln!("{what}: {report:?}");
+        if i == 0 {
+            assert!(report.changes > 64, "{what}: {report:?}");
+        } else {
+            assert!(
+                report.changes <= 64 && report.segments_delta > 0,
+                "{what}: {report:?}"
+            );
+        }
+    }
+}
+
 /// An opacity edit with few changes (the marks stand for the dirty cells) still recomputes every
 /// segment whose opacity changed, also where no change lies near it: the sphere made slightly
 /// thinner changes the transmittance of every segment that sees it, but moves only the photons
