@@ -97,6 +97,44 @@ fn gather_mark_touched(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     mark_segment(gather_list[scene.width * scene.height * photon.segments + index]);
 }
 
+// With per-sample sums, in place of gather_mark_touched and the gather where an update's
+// segments to compute are those scatter_touch listed and its marks stand (the host checks: no
+// opacity changed, and the marks added every change to the sums): recomposites each from its
+// samples' kept sums and weights (recomposite_from_sums), and lists for the gather, as
+// gather_mark would, the few it cannot (a sample without a valid sum). Counts each as
+// gather_mark does.
+@compute @workgroup_size(64)
+fn recomposite_touched(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let index = linear_index(gid, groups);
+    if (index >= atomicLoad(&counters[COUNTER_LIST + 1u])) {
+        return;
+    }
+    let id = gather_list[scene.width * scene.height * photon.segments + index];
+    atomicStore(&scatter[id], SEGMENT_UNTOUCHED);
+    let pixel = id / photon.segments;
+    let dir = pixel_ray(pixel);
+    let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
+    if (hit.x >= hit.y) {
+        return;
+    }
+    atomicAdd(&counters[COUNTER_DELTA], 1u);
+    atomicAdd(&counters[COUNTER_SEGMENTS], 1u);
+    let bounds = segment_bounds(hit, id % photon.segments);
+    let jitter = pixel_jitter(pixel);
+    // No budget: a segment holds at most a view ray's samples, far fewer than llvmpipe's
+    // loop limit.
+    var used = 0u;
+    let sum = recomposite_from_sums(pixel, hit, bounds, jitter, 0xffffffffu, &used);
+    if (sum.complete) {
+        segments[id].color_lo = sum.sum.lo;
+        segments[id].color_hi = sum.sum.hi;
+        return;
+    }
+    let k = first_lattice_index(hit, bounds.x, jitter);
+    gather_state[id] = GatherState(vec3<u32>(0u), k, vec3<u32>(0u), 1.0, 0u, 0u, NEXT_SAMPLE, 0u);
+    gather_list[atomicAdd(&counters[COUNTER_LIST], 1u)] = id;
+}
+
 // Lists segment id for the gather if it must be computed, as a full gather or an update
 // needs, and leaves its delta-scatter mark cleared.
 fn mark_segment(id: u32) {
@@ -226,12 +264,12 @@ struct Recomposite {
 // With per-sample sums, the radiance of a segment whose samples' weights are as its last
 // gather kept them (no opacity it meets changed), from their sums: Σ_k fixed(f32(P_k) · w_k),
 // the very terms the gather adds (photon/common.wgsl, sample_weight_word), over the same
-// lattice samples, without sampling the volume.
-fn recomposite_from_sums(pixel: u32, hit: vec2<f32>, bounds: vec2<f32>, jitter: f32, used: ptr<function, u32>) -> Recomposite {
+// lattice samples, without sampling the volume. `budget`: the loop iterations `used` may reach.
+fn recomposite_from_sums(pixel: u32, hit: vec2<f32>, bounds: vec2<f32>, jitter: f32, budget: u32, used: ptr<function, u32>) -> Recomposite {
     var sum = FixedSum(vec3<u32>(0u), vec3<u32>(0u));
     var k = first_lattice_index(hit, bounds.x, jitter);
     loop {
-        if (*used >= photon.round_budget) {
+        if (*used >= budget) {
             return Recomposite(false, sum);
         }
         *used += 1u;
@@ -294,7 +332,7 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
         // A segment whose opacity did not change, with the update's changes in its samples'
         // sums (sums_applied): its kept weights are its samples' as they stand.
         if (photon.sums_applied != 0u) {
-            let sum = recomposite_from_sums(pixel, hit, bounds, jitter, &used);
+            let sum = recomposite_from_sums(pixel, hit, bounds, jitter, photon.round_budget, &used);
             if (sum.complete) {
                 segments[id].color_lo = sum.sum.lo;
                 segments[id].color_hi = sum.sum.hi;

@@ -1013,7 +1013,7 @@ fn per_sample_sums_stay_exact_when_samples_hide_and_show_again() {
 /// all of it again) and that empty its samples (the block gone): the weights past the new
 /// cut-off and of the emptied samples are no longer those of the first march. Then, with a
 /// change list too short for one edit, colour edits follow an update that started a new
-/// generation of sums, some of which no gather has formed yet.
+/// generation of sums, some of which no gather has formed yet (those segments are gathered).
 #[test]
 fn colour_edits_recomposite_from_the_weights_of_each_segments_last_march() {
     let volume = cornell_volume(32);
@@ -1034,12 +1034,16 @@ fn colour_edits_recomposite_from_the_weights_of_each_segments_last_march() {
         let report = edit_equals_full(&mut photon, &volume, &mut s, tf, p, &what);
         eprintln!("{what}: {report:?}");
         if i % 2 == 1 {
-            // A colour edit: segments recomposited by the changes alone.
-            assert!(report.segments_delta > 0, "{what}: {report:?}");
+            // A colour edit: segments recomposited by the changes alone, which the marks
+            // added to the sums (recomposite_touched).
+            assert!(report.segments_scattered > 0, "{what}: {report:?}");
         }
     }
+    // A small loop budget leaves segments' gathers in rounds, so a segment's kept gather state
+    // is not its start.
     let p = PhotonParams {
         change_list: 64,
+        gather_budget: 300,
         ..params(Invalidation::DirtyCells)
     };
     let mut s = cornell_scene(40, cornell_with(&[]));
@@ -1057,10 +1061,9 @@ fn colour_edits_recomposite_from_the_weights_of_each_segments_last_march() {
         if i == 0 {
             assert!(report.changes > 64, "{what}: {report:?}");
         } else {
-            assert!(
-                report.changes <= 64 && report.segments_delta > 0,
-                "{what}: {report:?}"
-            );
+            // The marks stood and added the changes to the sums (recomposite_touched).
+            assert!(report.changes <= 64, "{what}: {report:?}");
+            assert!(report.segments_scattered > 0, "{what}: {report:?}");
         }
     }
 }

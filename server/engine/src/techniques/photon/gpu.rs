@@ -1,7 +1,8 @@
 //! The passes of technique `photon` (shaders/photon/*.wgsl): photon tracing
 //! (`photon/trace.wgsl`: mark the paths an update retraces, trace), the hash-grid build
 //! (`photon/grid.wgsl`: clear, count, scan, scatter; of the records or of an update's changes),
-//! gathering + compositing (`photon/gather.wgsl`: mark, gather in rounds, composite) and the
+//! gathering + compositing (`photon/gather.wgsl`: mark, recomposite touched, gather in rounds,
+//! composite) and the
 //! delta scatter of an update's changes (`photon/scatter.wgsl`: touch, weights, changes,
 //! apply, fallback; with per-sample photon sums, sums). All share one binding layout (`BINDINGS`, declared once in
 //! `photon/common.wgsl`) and the `#[repr(C)]` records below.
@@ -222,6 +223,7 @@ pub struct PhotonPass {
     pub grid_scatter: wgpu::ComputePipeline,
     pub gather_mark: wgpu::ComputePipeline,
     pub gather_mark_touched: wgpu::ComputePipeline,
+    pub recomposite_touched: wgpu::ComputePipeline,
     pub gather: wgpu::ComputePipeline,
     pub gather_sums: wgpu::ComputePipeline,
     pub composite: wgpu::ComputePipeline,
@@ -289,6 +291,11 @@ impl PhotonPass {
                 "photon gather mark touched",
                 &gather,
                 "gather_mark_touched",
+            ),
+            recomposite_touched: pipeline(
+                "photon recomposite touched",
+                &gather,
+                "recomposite_touched",
             ),
             gather: gather_pipeline("photon gather", false),
             gather_sums: gather_pipeline("photon gather sums", true),

@@ -1431,6 +1431,13 @@ impl Photon {
         self.write_counter(engine, COUNTER_LIST, 0);
         let pass = &engine.photon;
         match touched_only {
+            // The marks added the changes to the sums (they stand): most segments need only
+            // recompositing.
+            Some(listed) if self.budget.sample_cache_samples > 0 => {
+                let recomposite = &pass.recomposite_touched;
+                let label = "photon recomposite touched";
+                self.submit_linear(engine, label, recomposite, listed);
+            }
             Some(listed) => {
                 let mark = &pass.gather_mark_touched;
                 self.submit_linear(engine, "photon gather mark touched", mark, listed);
