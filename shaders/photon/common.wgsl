@@ -305,9 +305,11 @@ const SPATIAL_CELLS: u32 = 2u;
 // The per-sample photon sums (sample_cache_samples > 0): per pixel and lattice index k, the sum
 // of fixed(power · sum_lead() · phase · kernel) over the photons within the radius
 // (64-bit fixed point, lo then hi words per channel), the generation it was formed in, and the
-// weight its segment's last gather gave it (SAMPLE_WORDS words; sample_weight_word). A segment is then Σ_k fixed(f32(P_k) · transport(T_k, σ_k)), so a
-// segment whose opacity changed recomposites from its samples' sums instead of gathering its
-// photons again, and a changed photon updates the sums it reaches (integer sums, exact).
+// weight its segment's last gather gave it (SAMPLE_WORDS words; sample_weight_word). A segment
+// is then Σ_k fixed(f32(P_k) · transport(T_k, σ_k)), so a segment whose opacity changed
+// recomposites from its samples' sums instead of gathering its photons again, one whose
+// opacity did not from their sums and weights, and a changed photon updates the sums it
+// reaches (integer sums, exact).
 @group(0) @binding(18) var<storage, read_write> sample_sums: array<atomic<u32>>;
 
 const CHUNK_SLOTS: u32 = 4u;

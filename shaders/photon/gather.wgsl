@@ -23,6 +23,10 @@
 // `gather_state`; the host runs rounds over the segments still listed until none is left. The
 // sums do not depend on the budget: llvmpipe silently ends an invocation's loops after 65535
 // iterations in all, and dense cells exceed that.
+// With per-sample sums, a segment whose opacity did not change recomposites from its samples'
+// kept sums and weights (recomposite_from_sums): in the gather where gather_mark lists it, and,
+// where an update's only segments to compute are those the marks listed, in
+// `recomposite_touched` instead of gather_mark_touched and the gather.
 // `composite` multiplies the segments front to back.
 // Rust twin: server/engine/src/techniques/photon/gpu.rs.
 

@@ -2,10 +2,10 @@
 //! (`photon/trace.wgsl`: mark the paths an update retraces, trace), the hash-grid build
 //! (`photon/grid.wgsl`: clear, count, scan, scatter; of the records or of an update's changes),
 //! gathering + compositing (`photon/gather.wgsl`: mark, recomposite touched, gather in rounds,
-//! composite) and the
-//! delta scatter of an update's changes (`photon/scatter.wgsl`: touch, weights, changes,
-//! apply, fallback; with per-sample photon sums, sums). All share one binding layout (`BINDINGS`, declared once in
-//! `photon/common.wgsl`) and the `#[repr(C)]` records below.
+//! composite) and the delta scatter of an update's changes (`photon/scatter.wgsl`: touch,
+//! weights, changes, apply, fallback; with per-sample photon sums, sums). All share one binding
+//! layout (`BINDINGS`, declared once in `photon/common.wgsl`) and the `#[repr(C)]` records
+//! below.
 
 use bytemuck::{Pod, Zeroable};
 
@@ -174,7 +174,8 @@ pub const COUNTER_SCATTER_OVERFLOW: usize = 14;
 pub const COUNTER_TOUCH: usize = 15;
 pub const COUNTER_RECOLOURED: usize = 16;
 pub const COUNTER_CUT: usize = 17;
-/// Words per kept sample sum (`SAMPLE_WORDS`: lo and hi words of three channels, generation, weight).
+/// Words per kept sample sum (`SAMPLE_WORDS`: lo and hi words of three channels, generation,
+/// weight).
 pub const SAMPLE_WORDS: usize = 8;
 /// Words per delta-scatter slot (photon/scatter.wgsl).
 pub const SLOT_WORDS: usize = 8;
