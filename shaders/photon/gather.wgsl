@@ -128,10 +128,7 @@ fn recomposite_touched(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     // No budget: a segment holds at most a view ray's samples, far fewer than llvmpipe's
     // loop limit.
     var used = 0u;
-    let sum = recomposite_from_sums(pixel, hit, bounds, jitter, 0xffffffffu, &used);
-    if (sum.complete) {
-        segments[id].color_lo = sum.sum.lo;
-        segments[id].color_hi = sum.sum.hi;
+    if (recomposite_from_sums(id, hit, bounds, jitter, 0xffffffffu, &used)) {
         return;
     }
     let k = first_lattice_index(hit, bounds.x, jitter);
@@ -258,23 +255,19 @@ fn forget_dirty_sums() -> bool {
     return SAMPLE_SUMS && photon.mode == MODE_UPDATE && photon.sums_applied == 0u;
 }
 
-// A recomposited segment's radiance, or complete = false where a sample lacks its kept sum or
-// weight, or the loop budget ran out: the segment is then gathered.
-struct Recomposite {
-    complete: bool,
-    sum: FixedSum,
-}
-
-// With per-sample sums, the radiance of a segment whose samples' weights are as its last
-// gather kept them (no opacity it meets changed), from their sums: Σ_k fixed(f32(P_k) · w_k),
-// the very terms the gather adds (photon/common.wgsl, sample_weight_word), over the same
-// lattice samples, without sampling the volume. `budget`: the loop iterations `used` may reach.
-fn recomposite_from_sums(pixel: u32, hit: vec2<f32>, bounds: vec2<f32>, jitter: f32, budget: u32, used: ptr<function, u32>) -> Recomposite {
+// With per-sample sums, stores the radiance of segment id, whose samples' weights are as its
+// last gather kept them (no opacity it meets changed), from their sums: Σ_k fixed(f32(P_k) ·
+// w_k), the very terms the gather adds (photon/common.wgsl, sample_weight_word), over the same
+// lattice samples, without sampling the volume. Returns false, storing nothing, where a sample
+// lacks its kept sum or weight or the loop budget ran out (`budget`: the loop iterations `used`
+// may reach): the segment is then gathered.
+fn recomposite_from_sums(id: u32, hit: vec2<f32>, bounds: vec2<f32>, jitter: f32, budget: u32, used: ptr<function, u32>) -> bool {
+    let pixel = id / photon.segments;
     var sum = FixedSum(vec3<u32>(0u), vec3<u32>(0u));
     var k = first_lattice_index(hit, bounds.x, jitter);
     loop {
         if (*used >= budget) {
-            return Recomposite(false, sum);
+            return false;
         }
         *used += 1u;
         let t = hit.x + (k + jitter) * photon.gather_step;
@@ -284,7 +277,7 @@ fn recomposite_from_sums(pixel: u32, hit: vec2<f32>, bounds: vec2<f32>, jitter: 
         if (t >= bounds.x) {
             let entry = sample_entry(pixel, k);
             if (entry == SAMPLE_NONE) {
-                return Recomposite(false, sum);
+                return false;
             }
             let weight = bitcast<f32>(atomicLoad(&sample_sums[sample_weight_word(entry)]));
             if (weight < 0.0) {
@@ -292,7 +285,7 @@ fn recomposite_from_sums(pixel: u32, hit: vec2<f32>, bounds: vec2<f32>, jitter: 
             }
             if (weight > 0.0) {
                 if (!sample_valid(entry)) {
-                    return Recomposite(false, sum);
+                    return false;
                 }
                 let acc = sample_read(entry);
                 sum = accumulate(sum, fixed_to_f32(acc.lo, acc.hi) * (weight * FIXED_ONE), false);
@@ -300,7 +293,9 @@ fn recomposite_from_sums(pixel: u32, hit: vec2<f32>, bounds: vec2<f32>, jitter: 
         }
         k += 1.0;
     }
-    return Recomposite(true, sum);
+    segments[id].color_lo = sum.lo;
+    segments[id].color_hi = sum.hi;
+    return true;
 }
 
 @compute @workgroup_size(64)
@@ -336,10 +331,7 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
         // A segment whose opacity did not change, with the update's changes in its samples'
         // sums (sums_applied): its kept weights are its samples' as they stand.
         if (photon.sums_applied != 0u) {
-            let sum = recomposite_from_sums(pixel, hit, bounds, jitter, photon.round_budget, &used);
-            if (sum.complete) {
-                segments[id].color_lo = sum.sum.lo;
-                segments[id].color_hi = sum.sum.hi;
+            if (recomposite_from_sums(id, hit, bounds, jitter, budget, &used)) {
                 return;
             }
         }
