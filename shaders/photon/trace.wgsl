@@ -14,10 +14,12 @@
 // produce bit for bit the path a full trace (MODE_FULL) would. A record is changed when its
 // flight's historygram meets the rejection query (opacity rose) or its collision's bin, or an
 // earlier one's, meets the collision query (colour changed or opacity fell); see
-// PhotonUniforms. In MODE_UPDATE, `trace_mark`
-// first lists the paths the edit affects, and `main` runs one invocation per listed path: a
-// sparse update then keeps every SIMD lane busy instead of paying for whole batches whose
-// one affected path runs while the others idle.
+// PhotonUniforms. Where a resumed flight collides where it did, the record is the old one but
+// for its colour, and so is every flight after it up to the next record the edit changes:
+// the update walks the old records again from there instead of tracking them. In
+// MODE_UPDATE, `trace_mark` first lists the paths the edit affects, and `main` runs one
+// invocation per listed path: a sparse update then keeps every SIMD lane busy instead of
+// paying for whole batches whose one affected path runs while the others idle.
 // Rust twin: server/engine/src/techniques/photon/gpu.rs.
 
 #import photon/common
@@ -319,211 +321,256 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     // The path's chunk list: a full trace takes chunks afresh; an update keeps the ones the
     // path has (their slots past its end are empty) and takes more only where it grows.
     var head = CHUNK_NONE;
-
-    var start = -1;
     var old_count = 0u;
-    // Where an update resumes the first moved flight: at its old collision, whose opacity
-    // fell (the tentative points before it are replayed without reading the volume), with
-    // the path's historygram up to there (the old record's).
-    var resume = false;
-    var resume_position = vec3<f32>(0.0);
-    var resume_hist = vec2<u32>(0u);
-    // The bins of the path's collisions (kept ones, then new ones).
-    var collisions = vec2<u32>(0u);
+    // The historygram of the flight that left the volume after the old path's last record.
+    var old_end = vec2<u32>(0u);
     if (photon.mode == MODE_UPDATE) {
         let path = paths[p];
         old_count = path.count;
         head = path.chunk;
-        // Start after the last interaction the edit did not move: the first moved one is the
-        // first whose flight met the rejection query or whose collision's opacity fell. A
-        // collision whose colour alone changed stays where it is (the tracking never reads
-        // the albedo): it and every record after it only take a new power, formed here as the
-        // trace forms it (power × albedo), with no flight tracked. Should that decide whether
-        // the path goes on (a power that is now, or was, all zero), the trace resumes there.
-        var recolour = false;
-        var ends_differently = false;
-        var power_before = vec3<f32>(0.0);
-        var j = 0;
-        var cursor = SlotCursor(0u, CHUNK_NONE);
-        loop {
-            if (j >= i32(path.count)) {
-                break;
-            }
-            let slot = cursor_slot(p, head, &cursor);
-            let r = records[slot];
-            let bit = collision_bit(r);
-            let opacity_fell_here = hist_hits_collision_query(bit.x, bit.y) && hist_hits_opacity_query(bit.x, bit.y);
-            if (hist_hits_rejection_query(r.hist_lo, r.hist_hi)) {
-                break;
-            }
-            if (opacity_fell_here) {
-                // No tentative point of this flight met a bin whose opacity rose, so every
-                // one before the collision stays rejected (tracking_opacity cannot rise where
-                // the LUT fell): the flight resumes at the collision (`resume`).
-                resume = true;
-                resume_position = r.position;
-                resume_hist = vec2<u32>(r.hist_lo, r.hist_hi);
-                break;
-            }
-            collisions |= bit;
-            recolour = recolour || hist_hits_collision_query(bit.x, bit.y);
-            if (!recolour) {
-                power_before = r.power;
-                j += 1;
-                continue;
-            }
-            if (j == 0) {
-                var rng = rng_new(scene.seed, p, 0u);
-                power_before = emit(&rng).power;
-            }
-            let power = roulette_carry(power_before, u32(j)) * classify(data_at(r.position)).rgb;
-            store_record(slot, PhotonRecord(r.position, r.cell, power, r.hist_lo, r.direction, r.hist_hi));
-            power_before = power;
-            j += 1;
-            // The trace goes on after a record only while its power is not all zero.
-            if (all(power <= vec3<f32>(0.0)) != all(r.power <= vec3<f32>(0.0))) {
-                ends_differently = true;
-                break;
-            }
-        }
-        start = j - 1;
-        // Every record stayed in place and the flight that left the volume after the last one
-        // cannot collide now: nothing to track.
-        let escape_may_collide = path.count < bounces
-            && hist_hits_rejection_query(path.end_lo, path.end_hi);
-        if (recolour && j == i32(path.count) && !ends_differently && !escape_may_collide) {
-            atomicAdd(&counters[COUNTER_RECOLOURED], 1u);
-            return;
-        }
+        old_end = vec2<u32>(path.end_lo, path.end_hi);
     }
-
+    // The bins of the path's collisions (kept ones, then new ones).
+    var collisions = vec2<u32>(0u);
+    // An update's walk over the old records: whether one took a new colour (so every later
+    // one does), the power of the record before the next it looks at, and that next one.
+    var recolour = false;
+    var power_before = vec3<f32>(0.0);
+    var j = 0;
     var position = vec3<f32>(0.0);
     var direction = vec3<f32>(0.0, 0.0, 1.0);
     var power = vec3<f32>(0.0);
     var hist = vec2<u32>(0u);
     var k = 0u;
-    if (start >= 0) {
-        let r = records[record_slot(p, head, u32(start))];
-        position = r.position;
-        direction = r.direction;
-        power = r.power;
-        hist = vec2<u32>(r.hist_lo, r.hist_hi);
-        k = u32(start) + 1u;
-    }
-    // The chunk that holds interaction k − 1 (past the inline slots).
-    let chunk_at_start = slot_cursor(p, head, k);
-    var chunk = chunk_at_start.chunk;
-    var count = k;
+    var count = 0u;
     // The tracking steps of the last flight, which stored no record (census).
     var last_steps = 0u;
+    // A full trace runs this once. An update walks the old records, tracks from the first one
+    // the edit moves, and where that flight collides where it did, walks on from there.
     loop {
-        if (k >= bounces) {
-            break;
-        }
-        var rng = rng_new(scene.seed, p, k);
-        var origin: vec3<f32>;
-        var dir: vec3<f32>;
-        if (k == 0u) {
-            let e = emit(&rng);
-            origin = e.origin;
-            dir = e.direction;
-            power = e.power;
-        } else {
-            if (all(power <= vec3<f32>(0.0))) {
-                break;
-            }
-            if (roulette_applies(k)) {
-                if (rng_next(&rng) >= photon.roulette_survival) {
+        var start = -1;
+        // Where an update resumes the first moved flight: at its old collision, whose opacity
+        // fell (the tentative points before it are replayed without reading the volume), with
+        // the path's historygram up to there (the old record's) and the old record's power.
+        var resume = false;
+        var resume_position = vec3<f32>(0.0);
+        var resume_hist = vec2<u32>(0u);
+        var resume_power = vec3<f32>(0.0);
+        if (photon.mode == MODE_UPDATE) {
+            // Start after the last interaction the edit did not move: the first moved one is
+            // the first whose flight met the rejection query or whose collision's opacity fell.
+            // A collision whose colour alone changed stays where it is (the tracking never
+            // reads the albedo): it and every record after it only take a new power, formed
+            // here as the trace forms it (power × albedo), with no flight tracked. Should that
+            // decide whether the path goes on (a power that is now, or was, all zero), the
+            // trace resumes there.
+            var ends_differently = false;
+            var cursor = slot_cursor(p, head, u32(j));
+            loop {
+                if (j >= i32(old_count)) {
                     break;
                 }
-                power = roulette_carry(power, k);
-            }
-            let u1 = rng_next(&rng);
-            let u2 = rng_next(&rng);
-            dir = sample_hg(direction, scene.g, u1, u2);
-            origin = position;
-        }
-        let hit = intersect_box(origin, dir, scene.box_min, scene.box_max);
-        if (hit.x >= hit.y || photon.majorant <= 0.0) {
-            break;
-        }
-        var t = hit.x;
-        var collided = false;
-        var albedo = vec3<f32>(0.0);
-        var steps = 0u;
-        // Only the first flight an update tracks resumes.
-        var replay = resume;
-        resume = false;
-        loop {
-            steps += 1u;
-            t += -log(1.0 - rng_next(&rng)) / photon.majorant;
-            if (t >= hit.y) {
-                break;
-            }
-            let x = origin + dir * t;
-            let accept = rng_next(&rng);
-            if (replay) {
-                // The same draws and the same t as the flight that stored the old record, up
-                // to its position bit for bit; should an earlier point lie there too (a zero
-                // step), it was rejected at the same value and is rejected again below.
-                if (any(bitcast<vec3<u32>>(x) != bitcast<vec3<u32>>(resume_position))) {
+                let slot = cursor_slot(p, head, &cursor);
+                let r = records[slot];
+                let bit = collision_bit(r);
+                let opacity_fell_here = hist_hits_collision_query(bit.x, bit.y) && hist_hits_opacity_query(bit.x, bit.y);
+                if (hist_hits_rejection_query(r.hist_lo, r.hist_hi)) {
+                    break;
+                }
+                if (opacity_fell_here) {
+                    // No tentative point of this flight met a bin whose opacity rose, so every
+                    // one before the collision stays rejected (tracking_opacity cannot rise
+                    // where the LUT fell): the flight resumes at the collision (`resume`).
+                    resume = true;
+                    resume_position = r.position;
+                    resume_hist = vec2<u32>(r.hist_lo, r.hist_hi);
+                    resume_power = r.power;
+                    break;
+                }
+                collisions |= bit;
+                recolour = recolour || hist_hits_collision_query(bit.x, bit.y);
+                if (!recolour) {
+                    power_before = r.power;
+                    j += 1;
                     continue;
                 }
-                replay = false;
-                hist = resume_hist;
+                if (j == 0) {
+                    var rng = rng_new(scene.seed, p, 0u);
+                    power_before = emit(&rng).power;
+                }
+                let power = roulette_carry(power_before, u32(j)) * classify(data_at(r.position)).rgb;
+                store_record(slot, PhotonRecord(r.position, r.cell, power, r.hist_lo, r.direction, r.hist_hi));
+                power_before = power;
+                j += 1;
+                // The trace goes on after a record only while its power is not all zero.
+                if (all(power <= vec3<f32>(0.0)) != all(r.power <= vec3<f32>(0.0))) {
+                    ends_differently = true;
+                    break;
+                }
             }
-            let v = data_at(x);
-            hist |= hist_bit(v);
-            if (accept * photon.majorant < tracking_opacity(v) * scene.density_scale) {
-                collided = true;
-                albedo = classify(v).rgb;
-                position = x;
-                collisions |= hist_bit(v);
+            start = j - 1;
+            // Every record stayed in place and the flight that left the volume after the last
+            // one cannot collide now: nothing to track.
+            let escape_may_collide = old_count < bounces && hist_hits_rejection_query(old_end.x, old_end.y);
+            if (recolour && j == i32(old_count) && !ends_differently && !escape_may_collide) {
+                atomicAdd(&counters[COUNTER_RECOLOURED], 1u);
+                return;
+            }
+        }
+
+        k = 0u;
+        if (start >= 0) {
+            let r = records[record_slot(p, head, u32(start))];
+            position = r.position;
+            direction = r.direction;
+            power = r.power;
+            hist = vec2<u32>(r.hist_lo, r.hist_hi);
+            k = u32(start) + 1u;
+        }
+        // The chunk that holds interaction k − 1 (past the inline slots).
+        let chunk_at_start = slot_cursor(p, head, k);
+        var chunk = chunk_at_start.chunk;
+        count = k;
+        // Whether the resumed flight collided where it did: the walk goes on after it.
+        var walk_on = false;
+        loop {
+            if (k >= bounces) {
+                break;
+            }
+            var rng = rng_new(scene.seed, p, k);
+            var origin: vec3<f32>;
+            var dir: vec3<f32>;
+            if (k == 0u) {
+                let e = emit(&rng);
+                origin = e.origin;
+                dir = e.direction;
+                power = e.power;
+            } else {
+                if (all(power <= vec3<f32>(0.0))) {
+                    break;
+                }
+                if (roulette_applies(k)) {
+                    if (rng_next(&rng) >= photon.roulette_survival) {
+                        break;
+                    }
+                    power = roulette_carry(power, k);
+                }
+                let u1 = rng_next(&rng);
+                let u2 = rng_next(&rng);
+                dir = sample_hg(direction, scene.g, u1, u2);
+                origin = position;
+            }
+            let hit = intersect_box(origin, dir, scene.box_min, scene.box_max);
+            if (hit.x >= hit.y || photon.majorant <= 0.0) {
+                break;
+            }
+            var t = hit.x;
+            var collided = false;
+            var albedo = vec3<f32>(0.0);
+            var steps = 0u;
+            // Only the first flight an update tracks resumes: the same draws and the same t
+            // as the flight that stored the old record, up to its position bit for bit,
+            // replayed without reading the volume in a loop of their own (in the tracking
+            // loop, llvmpipe would sample the volume at every replayed point for the lanes
+            // that track), then rewound by one point for the tracking loop to decide there.
+            // Should an earlier point lie there too (a zero step), it was rejected at the same
+            // value and is rejected again.
+            let resumed = resume;
+            if (resume) {
+                resume = false;
+                loop {
+                    let before = rng;
+                    let t_before = t;
+                    t += -log(1.0 - rng_next(&rng)) / photon.majorant;
+                    if (t >= hit.y) {
+                        break;
+                    }
+                    let x = origin + dir * t;
+                    rng_next(&rng);
+                    if (all(bitcast<vec3<u32>>(x) == bitcast<vec3<u32>>(resume_position))) {
+                        rng = before;
+                        t = t_before;
+                        hist = resume_hist;
+                        break;
+                    }
+                }
+            }
+            loop {
+                steps += 1u;
+                t += -log(1.0 - rng_next(&rng)) / photon.majorant;
+                if (t >= hit.y) {
+                    break;
+                }
+                let x = origin + dir * t;
+                let accept = rng_next(&rng);
+                let v = data_at(x);
+                hist |= hist_bit(v);
+                if (accept * photon.majorant < tracking_opacity(v) * scene.density_scale) {
+                    collided = true;
+                    albedo = classify(v).rgb;
+                    position = x;
+                    collisions |= hist_bit(v);
+                    break;
+                }
+            }
+            if (!collided) {
+                last_steps = steps;
+                break;
+            }
+            // Interaction k's slot: its own, or the next in the path's chunks, taking a chunk
+            // where its list ends.
+            var slot = 0u;
+            if (k < photon.inline_slots) {
+                slot = inline_slot(p, k);
+            } else {
+                let j = (k - photon.inline_slots) % CHUNK_SLOTS;
+                if (j == 0u) {
+                    var next = head;
+                    if (k > photon.inline_slots) {
+                        next = atomicLoad(&chunks[chunk_word(p, chunk)]);
+                    }
+                    if (next == CHUNK_NONE) {
+                        next = take_chunk(p);
+                        // None left: the path ends here, shorter than a trace with room would
+                        // make it; the host sees the pass's count past its chunks.
+                        if (next == CHUNK_NONE) {
+                            last_steps = steps;
+                            break;
+                        }
+                        if (k == photon.inline_slots) {
+                            head = next;
+                        } else {
+                            atomicStore(&chunks[chunk_word(p, chunk)], next);
+                        }
+                    }
+                    chunk = next;
+                }
+                slot = chunk_slot(p, chunk, j);
+            }
+            if (photon.census != 0u) {
+                atomicStore(&scatter[photon.record_capacity + slot], steps);
+            }
+            direction = dir;
+            power *= albedo;
+            store_record(slot, PhotonRecord(position, grid_index(grid_cell3(position)), power, hist.x, direction, hist.y));
+            k += 1u;
+            count = k;
+            // Collided where it did (the same draws; no earlier point accepted now): the
+            // record is the old one but for its colour, and the flights after it start as they
+            // did, so the walk takes the old records again, unless whether the path goes on
+            // changed with the power.
+            if (resumed && all(bitcast<vec3<u32>>(position) == bitcast<vec3<u32>>(resume_position))
+                && all(power <= vec3<f32>(0.0)) == all(resume_power <= vec3<f32>(0.0))) {
+                walk_on = true;
                 break;
             }
         }
-        if (!collided) {
-            last_steps = steps;
+        if (!walk_on) {
             break;
         }
-        // Interaction k's slot: its own, or the next in the path's chunks, taking a chunk
-        // where its list ends.
-        var slot = 0u;
-        if (k < photon.inline_slots) {
-            slot = inline_slot(p, k);
-        } else {
-            let j = (k - photon.inline_slots) % CHUNK_SLOTS;
-            if (j == 0u) {
-                var next = head;
-                if (k > photon.inline_slots) {
-                    next = atomicLoad(&chunks[chunk_word(p, chunk)]);
-                }
-                if (next == CHUNK_NONE) {
-                    next = take_chunk(p);
-                    // None left: the path ends here, shorter than a trace with room would
-                    // make it; the host sees the pass's count past its chunks.
-                    if (next == CHUNK_NONE) {
-                        last_steps = steps;
-                        break;
-                    }
-                    if (k == photon.inline_slots) {
-                        head = next;
-                    } else {
-                        atomicStore(&chunks[chunk_word(p, chunk)], next);
-                    }
-                }
-                chunk = next;
-            }
-            slot = chunk_slot(p, chunk, j);
-        }
-        if (photon.census != 0u) {
-            atomicStore(&scatter[photon.record_capacity + slot], steps);
-        }
-        direction = dir;
-        power *= albedo;
-        store_record(slot, PhotonRecord(position, grid_index(grid_cell3(position)), power, hist.x, direction, hist.y));
-        k += 1u;
-        count = k;
+        j = i32(k);
+        power_before = power;
+        recolour = true;
     }
     if (photon.census != 0u) {
         atomicStore(&scatter[2u * photon.record_capacity + p], last_steps);
