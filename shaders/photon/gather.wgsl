@@ -27,6 +27,11 @@
 // kept sums and weights (recomposite_from_sums): in the gather where gather_mark lists it, and,
 // where an update's only segments to compute are those the marks listed, in
 // `recomposite_touched` instead of gather_mark_touched and the gather.
+// In an opacity edit whose marks stand, `gather_mark_stale` and `gather_mark_touched` list
+// what gather_mark would, and with complete sums that hold the update's changes,
+// `remarch_from_sums` computes the listed segments whose samples all have their sums before
+// the gather takes the rest: llvmpipe runs every branch of a kernel, masked, for every SIMD
+// batch, so the general kernels cost these cases as much as their hardest ones.
 // `composite` multiplies the segments front to back.
 // Rust twin: server/engine/src/techniques/photon/gpu.rs.
 
@@ -90,15 +95,50 @@ fn gather_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
 }
 
 // gather_mark over the segments scatter_touch listed (in the second half of gather_list),
-// where they are all an update can change: no opacity changed, and the marks stand for the
-// dirty cells (the host checks both). The other segments need nothing.
+// where the marks stand for the dirty cells (the host checks): where no opacity changed, they
+// are all an update can change, and the other segments need nothing; in an opacity edit,
+// gather_mark_stale lists those whose opacity changed, so here they only lose their mark.
 @compute @workgroup_size(64)
 fn gather_mark_touched(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let index = linear_index(gid, groups);
     if (index >= atomicLoad(&counters[COUNTER_LIST + 1u])) {
         return;
     }
-    mark_segment(gather_list[scene.width * scene.height * photon.segments + index]);
+    let id = gather_list[scene.width * scene.height * photon.segments + index];
+    if (hist_hits_opacity_query(segments[id].hist_lo, segments[id].hist_hi)) {
+        atomicStore(&scatter[id], SEGMENT_UNTOUCHED);
+        return;
+    }
+    mark_segment(id);
+}
+
+// gather_mark in an opacity edit whose marks stand (the host checks), with
+// gather_mark_touched: lists the segments whose opacity changed, to be gathered afresh. The
+// others need nothing unless the marks listed them. A kernel of its own because llvmpipe runs
+// every branch of a kernel's code for every SIMD batch, masked: gather_mark's other cases
+// would cost every segment about as much as this does (stop 40, docs/benchmarks.md).
+@compute @workgroup_size(64)
+fn gather_mark_stale(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let id = linear_index(gid, groups);
+    if (id >= scene.width * scene.height * photon.segments) {
+        return;
+    }
+    if (!hist_hits_opacity_query(segments[id].hist_lo, segments[id].hist_hi)) {
+        return;
+    }
+    let pixel = id / photon.segments;
+    let hit = intersect_box(scene.eye, pixel_ray(pixel), scene.box_min, scene.box_max);
+    if (hit.x >= hit.y) {
+        return;
+    }
+    if (segments[id].cut_off != 0u) {
+        atomicAdd(&counters[COUNTER_CUT], 1u);
+    }
+    atomicAdd(&counters[COUNTER_SEGMENTS], 1u);
+    let bounds = segment_bounds(hit, id % photon.segments);
+    let k = first_lattice_index(hit, bounds.x, pixel_jitter(pixel));
+    gather_state[id] = GatherState(vec3<u32>(0u), k, vec3<u32>(0u), 1.0, 0u, 0u, NEXT_SAMPLE, 0u);
+    gather_list[atomicAdd(&counters[COUNTER_LIST], 1u)] = id;
 }
 
 // With per-sample sums, in place of gather_mark_touched and the gather where an update's
@@ -295,6 +335,86 @@ fn recomposite_from_sums(id: u32, hit: vec2<f32>, bounds: vec2<f32>, jitter: f32
     }
     segments[id].color_lo = sum.lo;
     segments[id].color_hi = sum.hi;
+    return true;
+}
+
+// With per-sample sums, where every valid sum holds the update's changes (sums_applied) and
+// the sums are complete (the host checks both): before the gather's rounds, over the segments
+// gather_mark listed (round 0's list). One whose opacity changed marches afresh, taking each
+// sample's photons from its kept sum (march_from_sums), as the gather then does without
+// visiting a cell; one listed as a delta recomposites from its samples' sums and weights. It
+// lists for the gather, in the other half of gather_list, those it cannot (a sample without a
+// valid sum), from the start gather_mark gave them. A kernel of its own: llvmpipe runs the
+// gather's photon loops, masked, at every sample of every segment the gather marches.
+@compute @workgroup_size(64)
+fn remarch_from_sums(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let slot = linear_index(gid, groups);
+    if (slot >= atomicLoad(&counters[COUNTER_LIST])) {
+        return;
+    }
+    let entry = gather_list[slot];
+    let id = entry & ~DELTA_SEGMENT;
+    let pixel = id / photon.segments;
+    let dir = pixel_ray(pixel);
+    let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
+    let bounds = segment_bounds(hit, id % photon.segments);
+    let jitter = pixel_jitter(pixel);
+    if (id != entry) {
+        var used = 0u;
+        if (recomposite_from_sums(id, hit, bounds, jitter, 0xffffffffu, &used)) {
+            return;
+        }
+    } else if (march_from_sums(id, pixel, dir, hit, bounds, jitter)) {
+        return;
+    }
+    let segment_count = scene.width * scene.height * photon.segments;
+    gather_list[segment_count + atomicAdd(&counters[COUNTER_LIST + 1u], 1u)] = id;
+}
+
+// With per-sample sums whose every valid one holds the update's changes: the gather of segment
+// id from its start, where each sample its march weights has a valid kept sum: the same march
+// (hist, transmittance, cut-off, the samples' weights) and the same terms, `Σ_k fixed(f32(P_k)
+// · w_k)` in march order, without visiting a cell. Returns false where a sample lacks its sum:
+// the segment is then gathered (the weights stored so far are the ones the gather stores).
+fn march_from_sums(id: u32, pixel: u32, dir: vec3<f32>, hit: vec2<f32>, bounds: vec2<f32>, jitter: f32) -> bool {
+    var k = first_lattice_index(hit, bounds.x, jitter);
+    var transmit = 1.0;
+    var hist = vec2<u32>(0u);
+    var color = FixedSum(vec3<u32>(0u), vec3<u32>(0u));
+    loop {
+        let t = hit.x + (k + jitter) * photon.gather_step;
+        if (t < bounds.x) {
+            k += 1.0;
+            continue;
+        }
+        if (t >= bounds.y) {
+            break;
+        }
+        let kept = sample_entry(pixel, k);
+        if (transmit < SEGMENT_T_CUTOFF) {
+            sample_set_weight(kept, SAMPLE_PAST_CUTOFF);
+            break;
+        }
+        let v = data_at(scene.eye + dir * t);
+        hist |= hist_bit(v);
+        let sigma = classify(v).a * scene.density_scale;
+        if (sigma <= 0.0) {
+            sample_set_weight(kept, 0.0);
+            k += 1.0;
+            continue;
+        }
+        if (!sample_valid(kept)) {
+            return false;
+        }
+        let acc = sample_read(kept);
+        let weight = transport(transmit, sigma);
+        sample_set_weight(kept, weight);
+        color = accumulate(color, fixed_to_f32(acc.lo, acc.hi) * (weight * FIXED_ONE), false);
+        transmit *= exp(-sigma * photon.gather_step);
+        k += 1.0;
+    }
+    let cut_off = select(0u, 1u, transmit < SEGMENT_T_CUTOFF);
+    segments[id] = Segment(color.lo, transmit, color.hi, hist.x, hist.y, cut_off, 0u, 0u);
     return true;
 }
 

@@ -224,6 +224,8 @@ pub struct PhotonPass {
     pub grid_scatter: wgpu::ComputePipeline,
     pub gather_mark: wgpu::ComputePipeline,
     pub gather_mark_touched: wgpu::ComputePipeline,
+    pub gather_mark_stale: wgpu::ComputePipeline,
+    pub remarch_from_sums: wgpu::ComputePipeline,
     pub recomposite_touched: wgpu::ComputePipeline,
     pub gather: wgpu::ComputePipeline,
     pub gather_sums: wgpu::ComputePipeline,
@@ -293,6 +295,8 @@ impl PhotonPass {
                 &gather,
                 "gather_mark_touched",
             ),
+            gather_mark_stale: pipeline("photon gather mark stale", &gather, "gather_mark_stale"),
+            remarch_from_sums: pipeline("photon remarch from sums", &gather, "remarch_from_sums"),
             recomposite_touched: pipeline(
                 "photon recomposite touched",
                 &gather,

@@ -232,11 +232,12 @@ struct GatherPart {
 }
 
 impl GatherInProgress {
-    fn new(mode: u32, query: Query, listed: u32) -> Self {
+    /// A gather of the `listed` segments in half `input` of the segment list.
+    fn new(mode: u32, query: Query, listed: u32, input: u32) -> Self {
         Self {
             mode,
             query,
-            input: 0,
+            input,
             rounds: 0,
             listed,
             next: 0,
@@ -1442,7 +1443,17 @@ impl Photon {
                 let mark = &pass.gather_mark_touched;
                 self.submit_linear(engine, "photon gather mark touched", mark, listed);
             }
-            None => self.submit_linear(engine, "photon gather mark", &pass.gather_mark, segments),
+            None => match self.marks.get() {
+                // An opacity edit whose marks stand: the segments whose opacity changed, then
+                // those the marks listed; no other needs anything.
+                Some(listed) if mode == MODE_UPDATE => {
+                    let stale = &pass.gather_mark_stale;
+                    self.submit_linear(engine, "photon gather mark stale", stale, segments);
+                    let mark = &pass.gather_mark_touched;
+                    self.submit_linear(engine, "photon gather mark touched", mark, listed);
+                }
+                _ => self.submit_linear(engine, "photon gather mark", &pass.gather_mark, segments),
+            },
         }
         let records = self.record_count();
         let change_entries = self.budget.change_entries as u32;
@@ -1481,8 +1492,30 @@ impl Photon {
             self.build_grid(&mut encoder, &engine.photon, build.items);
             engine.gpu.queue.submit([encoder.finish()]);
         }
-        let listed = self.counter(engine, COUNTER_LIST)?;
-        self.gathering = Some(GatherInProgress::new(mode, query, listed));
+        let mut listed = self.counter(engine, COUNTER_LIST)?;
+        let mut input = 0;
+        // Where every valid sum holds the changes, most listed segments need no photon: they
+        // march (or recomposite) from the sums first, and the gather takes the rest.
+        let summed = self.budget.sample_cache_samples > 0
+            && self.sums_applied.get()
+            && self.sums_complete.get();
+        if mode == MODE_UPDATE && summed && listed > 0 {
+            self.write_uniforms(
+                engine,
+                scene,
+                query,
+                Dispatch {
+                    mode,
+                    ..Dispatch::default()
+                },
+            );
+            self.write_counter(engine, COUNTER_LIST + 1, 0);
+            let remarch = &engine.photon.remarch_from_sums;
+            self.submit_linear(engine, "photon remarch from sums", remarch, listed);
+            listed = self.counter(engine, COUNTER_LIST + 1)?;
+            input = 1;
+        }
+        self.gathering = Some(GatherInProgress::new(mode, query, listed, input));
         Ok(())
     }
 
@@ -2570,7 +2603,7 @@ mod tests {
 
     #[test]
     fn an_unbounded_gather_is_one_round_in_parts() {
-        let mut gathering = GatherInProgress::new(MODE_FULL, Query::default(), 2500);
+        let mut gathering = GatherInProgress::new(MODE_FULL, Query::default(), 2500, 0);
         let mut parts = Vec::new();
         while gathering.listed > 0 {
             let part = gathering.part(u32::MAX, 32, 1000);
@@ -2599,7 +2632,7 @@ mod tests {
 
     #[test]
     fn bounded_rounds_alternate_lists_and_give_the_rest_more_budget_on_fewer_lanes() {
-        let mut gathering = GatherInProgress::new(MODE_UPDATE, Query::default(), 100);
+        let mut gathering = GatherInProgress::new(MODE_UPDATE, Query::default(), 100, 0);
         let mut rounds = Vec::new();
         // Each round leaves half its segments, until one is left and it finishes.
         while gathering.listed > 0 {
@@ -2625,7 +2658,7 @@ mod tests {
         );
         assert_eq!(gathering.rounds, 7);
         // Lanes are taken as at least 1 and at most 64; the doubling stops at 64.
-        let mut late = GatherInProgress::new(MODE_FULL, Query::default(), 5);
+        let mut late = GatherInProgress::new(MODE_FULL, Query::default(), 5, 0);
         late.rounds = 9;
         assert_eq!(late.part(200, 0, 2).round.stride, 1);
         assert_eq!(late.part(200, 128, 2).round.stride, 64);
