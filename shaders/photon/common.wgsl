@@ -211,8 +211,11 @@ struct Segment {
     // 1 where the segment's march ended at its transmittance cut-off (samples past it were
     // never gathered); gather_mark counts the opacity-stale ones (COUNTER_CUT).
     cut_off: u32,
-    pad1: u32,
-    pad2: u32,
+    // In each pixel's first segment: the union of its segments' historygrams as the last
+    // `composite` found them (every update's marks come after a finished gather, whose
+    // composite ran); gather_mark_stale skips a pixel by it. 0 in every other segment.
+    pixel_hist_lo: u32,
+    pixel_hist_hi: u32,
 }
 
 const MODE_FULL: u32 = 0u;

@@ -114,31 +114,39 @@ fn gather_mark_touched(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
 
 // gather_mark in an opacity edit whose marks stand (the host checks), with
 // gather_mark_touched: lists the segments whose opacity changed, to be gathered afresh. The
-// others need nothing unless the marks listed them. A kernel of its own because llvmpipe runs
-// every branch of a kernel's code for every SIMD batch, masked: gather_mark's other cases
-// would cost every segment about as much as this does (stop 40, docs/benchmarks.md).
+// others need nothing unless the marks listed them. One invocation per pixel, which it skips
+// by the union of its segments' historygrams (Segment.pixel_hist_lo/hi). A kernel of its own
+// because llvmpipe runs every branch of a kernel's code for every SIMD batch, masked:
+// gather_mark's other cases would cost every segment about as much as this does.
 @compute @workgroup_size(64)
 fn gather_mark_stale(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let id = linear_index(gid, groups);
-    if (id >= scene.width * scene.height * photon.segments) {
+    let pixel = linear_index(gid, groups);
+    if (pixel >= scene.width * scene.height) {
         return;
     }
-    if (!hist_hits_opacity_query(segments[id].hist_lo, segments[id].hist_hi)) {
+    let first = pixel * photon.segments;
+    if (!hist_hits_opacity_query(segments[first].pixel_hist_lo, segments[first].pixel_hist_hi)) {
         return;
     }
-    let pixel = id / photon.segments;
     let hit = intersect_box(scene.eye, pixel_ray(pixel), scene.box_min, scene.box_max);
     if (hit.x >= hit.y) {
         return;
     }
-    if (segments[id].cut_off != 0u) {
-        atomicAdd(&counters[COUNTER_CUT], 1u);
+    let jitter = pixel_jitter(pixel);
+    for (var s = 0u; s < photon.segments; s++) {
+        let id = first + s;
+        let old = segments[id];
+        if (!hist_hits_opacity_query(old.hist_lo, old.hist_hi)) {
+            continue;
+        }
+        if (old.cut_off != 0u) {
+            atomicAdd(&counters[COUNTER_CUT], 1u);
+        }
+        atomicAdd(&counters[COUNTER_SEGMENTS], 1u);
+        let k = first_lattice_index(hit, segment_bounds(hit, s).x, jitter);
+        gather_state[id] = GatherState(vec3<u32>(0u), k, vec3<u32>(0u), 1.0, 0u, 0u, NEXT_SAMPLE, 0u);
+        gather_list[atomicAdd(&counters[COUNTER_LIST], 1u)] = id;
     }
-    atomicAdd(&counters[COUNTER_SEGMENTS], 1u);
-    let bounds = segment_bounds(hit, id % photon.segments);
-    let k = first_lattice_index(hit, bounds.x, pixel_jitter(pixel));
-    gather_state[id] = GatherState(vec3<u32>(0u), k, vec3<u32>(0u), 1.0, 0u, 0u, NEXT_SAMPLE, 0u);
-    gather_list[atomicAdd(&counters[COUNTER_LIST], 1u)] = id;
 }
 
 // With per-sample sums, in place of gather_mark_touched and the gather where an update's
@@ -654,11 +662,15 @@ fn composite(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     }
     var radiance = vec3<f32>(0.0);
     var transmit = 1.0;
+    var hist = vec2<u32>(0u);
     for (var s = 0u; s < photon.segments; s++) {
         let seg = segments[pixel * photon.segments + s];
         radiance += transmit * fixed_to_f32(seg.color_lo, seg.color_hi);
         transmit *= seg.transmittance;
+        hist |= vec2<u32>(seg.hist_lo, seg.hist_hi);
     }
+    segments[pixel * photon.segments].pixel_hist_lo = hist.x;
+    segments[pixel * photon.segments].pixel_hist_hi = hist.y;
     radiance += transmit * scene.env_radiance;
     accum[pixel] = vec4<f32>(radiance, 1.0);
 }

@@ -92,7 +92,7 @@ fn photon_structs_match_wgsl() {
             &module,
             "Segment",
             size_of::<Segment>(),
-            fields!(Segment: color_lo, transmittance, color_hi, hist_lo, hist_hi, cut_off, pad1, pad2),
+            fields!(Segment: color_lo, transmittance, color_hi, hist_lo, hist_hi, cut_off, pixel_hist_lo, pixel_hist_hi),
         );
         assert_layout(
             &module,

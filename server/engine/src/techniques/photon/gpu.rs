@@ -132,8 +132,9 @@ pub struct Segment {
     pub hist_hi: u32,
     /// 1 where the segment's march ended at its transmittance cut-off.
     pub cut_off: u32,
-    pub pad1: u32,
-    pub pad2: u32,
+    /// In each pixel's first segment: the union of its segments' historygrams (`composite`).
+    pub pixel_hist_lo: u32,
+    pub pixel_hist_hi: u32,
 }
 
 /// Matches `GatherState`: where a segment's gather stands between rounds.

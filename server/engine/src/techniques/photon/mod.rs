@@ -1448,7 +1448,8 @@ impl Photon {
                 // those the marks listed; no other needs anything.
                 Some(listed) if mode == MODE_UPDATE => {
                     let stale = &pass.gather_mark_stale;
-                    self.submit_linear(engine, "photon gather mark stale", stale, segments);
+                    let pixels = self.width * self.height;
+                    self.submit_linear(engine, "photon gather mark stale", stale, pixels);
                     let mark = &pass.gather_mark_touched;
                     self.submit_linear(engine, "photon gather mark touched", mark, listed);
                 }
