@@ -192,14 +192,6 @@ fn mark_segment(id: u32) {
         touched = atomicLoad(&scatter[id]) == SEGMENT_TOUCHED;
         atomicStore(&scatter[id], SEGMENT_UNTOUCHED);
     }
-    if (photon.mode == MODE_UPDATE && !touched && photon.spatial == SPATIAL_CELLS && photon.marks_stand != 0u) {
-        // Most segments of an opacity edit: neither their opacity nor a change reaches them,
-        // which the rest would find only after tracing their ray.
-        let old = segments[id];
-        if (!hist_hits_opacity_query(old.hist_lo, old.hist_hi)) {
-            return;
-        }
-    }
     let pixel = id / photon.segments;
     let dir = pixel_ray(pixel);
     let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
