@@ -1418,15 +1418,12 @@ impl Photon {
             self.new_sum_generation();
             self.sums_complete.set(true);
         }
-        self.write_uniforms(
-            engine,
-            scene,
-            query,
-            Dispatch {
-                mode,
-                ..Dispatch::default()
-            },
-        );
+        // The uniforms of the marks and of `remarch_from_sums`.
+        let mode_only = Dispatch {
+            mode,
+            ..Dispatch::default()
+        };
+        self.write_uniforms(engine, scene, query, mode_only.clone());
         let touched_only = self.touched_only(mode, query);
         // gather_mark lists afresh.
         self.write_counter(engine, COUNTER_LIST, 0);
@@ -1501,15 +1498,8 @@ impl Photon {
             && self.sums_applied.get()
             && self.sums_complete.get();
         if mode == MODE_UPDATE && summed && listed > 0 {
-            self.write_uniforms(
-                engine,
-                scene,
-                query,
-                Dispatch {
-                    mode,
-                    ..Dispatch::default()
-                },
-            );
+            // After the grids' uniforms, and with this update's `sums_applied`.
+            self.write_uniforms(engine, scene, query, mode_only);
             self.write_counter(engine, COUNTER_LIST + 1, 0);
             let remarch = &engine.photon.remarch_from_sums;
             self.submit_linear(engine, "photon remarch from sums", remarch, listed);
