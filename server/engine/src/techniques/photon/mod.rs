@@ -1424,34 +1424,39 @@ impl Photon {
             ..Dispatch::default()
         };
         self.write_uniforms(engine, scene, query, mode_only.clone());
-        let touched_only = self.touched_only(mode, query);
+        // Where an update's marks stand for the dirty cells (`touch`: no change was too wide
+        // for them and the change list holds every change), the segments they listed.
+        let marked = if mode == MODE_UPDATE {
+            self.marks.get()
+        } else {
+            None
+        };
+        let no_opacity = query.opacity == 0;
         // gather_mark lists afresh.
         self.write_counter(engine, COUNTER_LIST, 0);
         let pass = &engine.photon;
-        match touched_only {
-            // The marks added the changes to the sums (they stand): most segments need only
-            // recompositing.
-            Some(listed) if self.budget.sample_cache_samples > 0 => {
+        match marked {
+            // No opacity changed: the marked segments are all an update can change, and the
+            // marks added the changes to the sums: most need only recompositing.
+            Some(listed) if no_opacity && self.budget.sample_cache_samples > 0 => {
                 let recomposite = &pass.recomposite_touched;
                 let label = "photon recomposite touched";
                 self.submit_linear(engine, label, recomposite, listed);
             }
-            Some(listed) => {
+            Some(listed) if no_opacity => {
                 let mark = &pass.gather_mark_touched;
                 self.submit_linear(engine, "photon gather mark touched", mark, listed);
             }
-            None => match self.marks.get() {
-                // An opacity edit whose marks stand: the segments whose opacity changed, then
-                // those the marks listed; no other needs anything.
-                Some(listed) if mode == MODE_UPDATE => {
-                    let stale = &pass.gather_mark_stale;
-                    let pixels = self.width * self.height;
-                    self.submit_linear(engine, "photon gather mark stale", stale, pixels);
-                    let mark = &pass.gather_mark_touched;
-                    self.submit_linear(engine, "photon gather mark touched", mark, listed);
-                }
-                _ => self.submit_linear(engine, "photon gather mark", &pass.gather_mark, segments),
-            },
+            // An opacity edit: the segments whose opacity changed, then those the marks listed;
+            // no other needs anything.
+            Some(listed) => {
+                let stale = &pass.gather_mark_stale;
+                let pixels = self.width * self.height;
+                self.submit_linear(engine, "photon gather mark stale", stale, pixels);
+                let mark = &pass.gather_mark_touched;
+                self.submit_linear(engine, "photon gather mark touched", mark, listed);
+            }
+            None => self.submit_linear(engine, "photon gather mark", &pass.gather_mark, segments),
         }
         let records = self.record_count();
         let change_entries = self.budget.change_entries as u32;
@@ -1604,8 +1609,8 @@ impl Photon {
     }
 
     /// Marks and lists the segments the update's changes can reach (`scatter_touch`, over at
-    /// most `entries` change-list entries), for gather_mark to take instead of the dirty cells
-    /// (or, where no opacity changed, to visit alone: `touched_only`); with per-sample sums it
+    /// most `entries` change-list entries), for the marks' passes to take instead of the dirty
+    /// cells' march over every segment (`begin_gather`); with per-sample sums it
     /// adds the changes to them in the same visit (`scatter_touch_sums`). Then reads whether
     /// the marks stand for the dirty cells (`marks`; one blocking read): no change was too
     /// wide for them, and the list holds all `changes`.
@@ -1630,17 +1635,6 @@ impl Photon {
         let stand = words[COUNTER_SCATTER_OVERFLOW] == 0 && changes <= self.budget.change_entries;
         self.marks.set(stand.then_some(words[COUNTER_LIST + 1]));
         Ok(())
-    }
-
-    /// Where an update's segments to compute are only those `touch` listed (no opacity
-    /// changed, and its marks stand for the dirty cells: no change was too wide for them and
-    /// the change list holds every change), how many it listed; `None` where `gather_mark`
-    /// must visit every segment.
-    fn touched_only(&self, mode: u32, query: Query) -> Option<u32> {
-        if mode != MODE_UPDATE || query.opacity != 0 {
-            return None;
-        }
-        self.marks.get()
     }
 
     /// Starts a new generation of the per-sample photon sums: every kept sum is invalid.
