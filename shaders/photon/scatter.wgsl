@@ -226,8 +226,11 @@ fn change_ray(pixel: u32, change: PhotonChange, ray: RayNearChange, reach2: f32)
     let step = photon.gather_step;
     out.jitter = pixel_jitter(pixel);
     out.phase = phase_hg(dot(change.direction, -ray.dir), scene.g);
-    out.k_first = max(0.0, floor((ray.tc - half - ray.hit.x) / step - out.jitter) - 1.0);
-    out.k_last = ceil((ray.tc + half - ray.hit.x) / step - out.jitter) + 1.0;
+    // Exactly the lattice indices within `half` of the foot: reach2's margin (at least 1% of
+    // the radius on each side) is far beyond the rounding of these few operations, so no
+    // sample within the radius falls outside (the loops test each sample exactly).
+    out.k_first = max(0.0, ceil((ray.tc - half - ray.hit.x) / step - out.jitter));
+    out.k_last = floor((ray.tc + half - ray.hit.x) / step - out.jitter);
     return out;
 }
 
@@ -277,10 +280,16 @@ fn scatter_touch(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
             if (!ray.near) {
                 continue;
             }
-            if (TOUCH_SUMS) {
-                add_to_sums(pixel, change, change_ray(pixel, change, ray, reach2), kernel, lead);
-            }
             let hit = ray.hit;
+            if (TOUCH_SUMS) {
+                // The samples the sums visit give the segments exactly: those with a lattice
+                // sample within the radius, the only ones whose terms the change alters.
+                let within = add_to_sums(pixel, change, change_ray(pixel, change, ray, reach2), kernel, lead);
+                if (within.x <= within.y) {
+                    touch_segments(pixel, segment_of(hit, within.x), segment_of(hit, within.y));
+                }
+                continue;
+            }
             // A step's margin at each end for the rounding of the samples' positions.
             let half = sqrt(reach2 - ray.perp2) + photon.gather_step;
             let ta = max(ray.tc - half, hit.x);
@@ -288,16 +297,20 @@ fn scatter_touch(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
             if (ta >= tb) {
                 continue;
             }
-            let last = segment_of(hit, tb);
-            for (var s = segment_of(hit, ta); s <= last; s++) {
-                // Each segment marked once is also listed once, in the second half of
-                // gather_list, free until the gather's rounds (gather_mark_touched).
-                let id = pixel * photon.segments + s;
-                if (atomicExchange(&scatter[id], SEGMENT_TOUCHED) != SEGMENT_TOUCHED) {
-                    let listed = atomicAdd(&counters[COUNTER_LIST + 1u], 1u);
-                    gather_list[scene.width * scene.height * photon.segments + listed] = id;
-                }
-            }
+            touch_segments(pixel, segment_of(hit, ta), segment_of(hit, tb));
+        }
+    }
+}
+
+// Marks and lists the pixel's segments first..=last (scatter_touch).
+fn touch_segments(pixel: u32, first: u32, last: u32) {
+    for (var s = first; s <= last; s++) {
+        // Each segment marked once is also listed once, in the second half of gather_list,
+        // free until the gather's rounds (gather_mark_touched).
+        let id = pixel * photon.segments + s;
+        if (atomicExchange(&scatter[id], SEGMENT_TOUCHED) != SEGMENT_TOUCHED) {
+            let listed = atomicAdd(&counters[COUNTER_LIST + 1u], 1u);
+            gather_list[scene.width * scene.height * photon.segments + listed] = id;
         }
     }
 }
@@ -418,8 +431,11 @@ fn scatter_sums(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
 }
 
 // Adds the change's terms to the valid sums of the pixel's lattice samples within its radius.
-fn add_to_sums(pixel: u32, change: PhotonChange, ray: ChangeRay, kernel: vec2<f32>, lead: f32) {
+// Returns the distances along the ray of the first and last such sample, valid sum or not
+// (first > last: none).
+fn add_to_sums(pixel: u32, change: PhotonChange, ray: ChangeRay, kernel: vec2<f32>, lead: f32) -> vec2<f32> {
     let r2 = kernel.x;
+    var within = vec2<f32>(1.0, 0.0);
     for (var k = ray.k_first; k <= ray.k_last; k += 1.0) {
         let sample = change_sample(ray, k, change.position);
         let d2 = sample.y;
@@ -432,6 +448,7 @@ fn add_to_sums(pixel: u32, change: PhotonChange, ray: ChangeRay, kernel: vec2<f3
         if (d2 >= r2) {
             continue;
         }
+        within = vec2<f32>(select(within.x, sample.x, within.x > within.y), sample.x);
         let kept = sample_entry(pixel, k);
         if (!sample_valid(kept)) {
             continue;
@@ -444,6 +461,7 @@ fn add_to_sums(pixel: u32, change: PhotonChange, ray: ChangeRay, kernel: vec2<f3
         }
         sample_add(kept, sum);
     }
+    return within;
 }
 
 @compute @workgroup_size(64)
