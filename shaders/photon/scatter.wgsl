@@ -254,7 +254,8 @@ override TOUCH_SUMS: bool = false;
 
 // Marks (SEGMENT_TOUCHED) and lists every segment that holds a lattice sample within the radius
 // of a changed photon, or may: the segments of each ray through the photon's ball that overlap the
-// ray's interval within the ball. gather_mark takes these as the segments the changes reach,
+// ray's interval within the ball (with TOUCH_SUMS, exactly those that hold such a sample, found
+// by the samples the sums visit). gather_mark takes these as the segments the changes reach,
 // in place of the dirty cells' march over every segment (COUNTER_TOUCH).
 @compute @workgroup_size(64)
 fn scatter_touch(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
