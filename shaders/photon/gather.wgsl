@@ -143,9 +143,7 @@ fn gather_mark_stale(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num
             atomicAdd(&counters[COUNTER_CUT], 1u);
         }
         atomicAdd(&counters[COUNTER_SEGMENTS], 1u);
-        let k = first_lattice_index(hit, segment_bounds(hit, s).x, jitter);
-        gather_state[id] = GatherState(vec3<u32>(0u), k, vec3<u32>(0u), 1.0, 0u, 0u, NEXT_SAMPLE, 0u);
-        gather_list[atomicAdd(&counters[COUNTER_LIST], 1u)] = id;
+        list_from_start(id, first_lattice_index(hit, segment_bounds(hit, s).x, jitter));
     }
 }
 
@@ -179,8 +177,17 @@ fn recomposite_touched(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     if (recomposite_from_sums(id, hit, bounds, jitter, 0xffffffffu, &used)) {
         return;
     }
-    let k = first_lattice_index(hit, bounds.x, jitter);
-    gather_state[id] = GatherState(vec3<u32>(0u), k, vec3<u32>(0u), 1.0, 0u, 0u, NEXT_SAMPLE, 0u);
+    list_from_start(id, first_lattice_index(hit, bounds.x, jitter));
+}
+
+// A segment's gather from its first lattice index k: nothing summed, full transmittance.
+fn gather_start(k: f32) -> GatherState {
+    return GatherState(vec3<u32>(0u), k, vec3<u32>(0u), 1.0, 0u, 0u, NEXT_SAMPLE, 0u);
+}
+
+// Lists segment id for the gather afresh, from its first lattice index k.
+fn list_from_start(id: u32, k: f32) {
+    gather_state[id] = gather_start(k);
     gather_list[atomicAdd(&counters[COUNTER_LIST], 1u)] = id;
 }
 
@@ -205,7 +212,7 @@ fn mark_segment(id: u32) {
     var stale = true;
     var delta = false;
     var scattered = false;
-    var start = GatherState(vec3<u32>(0u), 0.0, vec3<u32>(0u), 1.0, 0u, 0u, NEXT_SAMPLE, 0u);
+    var start = gather_start(0.0);
     if (photon.mode == MODE_UPDATE) {
         let old = segments[id];
         stale = hist_hits_opacity_query(old.hist_lo, old.hist_hi);
