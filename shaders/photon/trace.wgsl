@@ -24,6 +24,22 @@
 
 #import photon/common
 
+// `main` is compiled twice: for full traces and for updates (TRACE_UPDATE), each without the
+// other's code. llvmpipe runs every branch of a kernel for every SIMD batch, masked, so with
+// the mode a uniform the full trace paid for the update's walk, replay and change list, and
+// the update for the census.
+override TRACE_UPDATE: bool = false;
+
+// Whether this invocation updates a map (MODE_UPDATE); `main` and what it calls ask this.
+fn updating() -> bool {
+    return TRACE_UPDATE;
+}
+
+// Whether a full trace counts its work (PhotonUniforms::census).
+fn counting() -> bool {
+    return !TRACE_UPDATE && photon.census != 0u;
+}
+
 // Marks the spatial historygram (3×64 bits) at world position p.
 fn mark_axes(p: vec3<f32>) {
     let b = spatial_bins(p);
@@ -104,7 +120,7 @@ fn trace_mark_changes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(nu
 // Writes record `index`; in MODE_UPDATE a record that differs from the one it replaces marks
 // both positions as changed and lists both versions as changes.
 fn store_record(index: u32, record: PhotonRecord) {
-    if (photon.mode == MODE_UPDATE) {
+    if (updating()) {
         let old = records[index];
         if (!same_record(old, record)) {
             atomicAdd(&counters[COUNTER_CHANGED], 1u);
@@ -314,7 +330,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         return;
     }
     var p = photon.path_offset + i;
-    if (photon.mode == MODE_UPDATE) {
+    if (updating()) {
         p = retrace_list[i];
     }
     let bounces = photon.bounces;
@@ -324,7 +340,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     var old_count = 0u;
     // The historygram of the flight that left the volume after the old path's last record.
     var old_end = vec2<u32>(0u);
-    if (photon.mode == MODE_UPDATE) {
+    if (updating()) {
         let path = paths[p];
         old_count = path.count;
         head = path.chunk;
@@ -356,7 +372,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         var resume_position = vec3<f32>(0.0);
         var resume_hist = vec2<u32>(0u);
         var resume_power = vec3<f32>(0.0);
-        if (photon.mode == MODE_UPDATE) {
+        if (updating()) {
             // Start after the last interaction the edit did not move: the first moved one is
             // the first whose flight met the rejection query or whose collision's opacity fell.
             // A collision whose colour alone changed stays where it is (the tracking never
@@ -547,7 +563,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
                 }
                 slot = chunk_slot(p, chunk, j);
             }
-            if (photon.census != 0u) {
+            if (counting()) {
                 atomicStore(&scatter[photon.record_capacity + slot], steps);
             }
             direction = dir;
@@ -572,12 +588,12 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         power_before = power;
         recolour = true;
     }
-    if (photon.census != 0u) {
+    if (counting()) {
         atomicStore(&scatter[2u * photon.record_capacity + p], last_steps);
     }
     // Interactions past the end of the path hold no photon: in a full trace its inline slots
     // (trace_clear emptied the chunks), in an update the slots the old path filled.
-    if (photon.mode == MODE_FULL) {
+    if (!updating()) {
         for (var r = count; r < photon.inline_slots; r++) {
             store_record(inline_slot(p, r), empty_record());
         }

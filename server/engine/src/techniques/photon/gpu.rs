@@ -216,6 +216,8 @@ pub struct PhotonPass {
     pub trace_mark: wgpu::ComputePipeline,
     pub trace_clear: wgpu::ComputePipeline,
     pub trace: wgpu::ComputePipeline,
+    /// `trace` compiled for updates (TRACE_UPDATE).
+    pub trace_update: wgpu::ComputePipeline,
     pub trace_mark_changes: wgpu::ComputePipeline,
     pub grid_clear: wgpu::ComputePipeline,
     pub grid_count: wgpu::ComputePipeline,
@@ -283,6 +285,13 @@ impl PhotonPass {
             trace_mark: pipeline("photon trace mark", &trace, "trace_mark"),
             trace_clear: pipeline("photon trace clear", &trace, "trace_clear"),
             trace: pipeline("photon trace", &trace, "main"),
+            trace_update: layout.specialized_pipeline(
+                gpu,
+                "photon trace update",
+                &trace,
+                "main",
+                &[("TRACE_UPDATE", 1.0)],
+            ),
             trace_mark_changes: pipeline("photon trace mark changes", &trace, "trace_mark_changes"),
             grid_clear: pipeline("photon grid clear", &grid, "grid_clear"),
             grid_count: pipeline("photon grid count", &grid, "grid_count"),

@@ -1374,7 +1374,12 @@ impl Photon {
             ..Dispatch::default()
         };
         self.write_uniforms(engine, scene, query, dispatch);
-        self.submit_linear(engine, "photon trace", &engine.photon.trace, count);
+        let (label, pipeline) = if mode == MODE_UPDATE {
+            ("photon trace update", &engine.photon.trace_update)
+        } else {
+            ("photon trace", &engine.photon.trace)
+        };
+        self.submit_linear(engine, label, pipeline, count);
     }
 
     /// Whether a pass's paths needed more chunks than its pool holds since its last full trace
