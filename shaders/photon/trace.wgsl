@@ -30,7 +30,7 @@
 // the update for the census.
 override TRACE_UPDATE: bool = false;
 
-// Whether this invocation updates a map (MODE_UPDATE); `main` and what it calls ask this.
+// Whether this pipeline updates a map (MODE_UPDATE); `main` and what it calls ask this.
 fn updating() -> bool {
     return TRACE_UPDATE;
 }
