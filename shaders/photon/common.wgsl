@@ -27,7 +27,8 @@ struct PhotonUniforms {
     // First path of this trace dispatch and how many.
     path_offset: u32,
     dispatch_paths: u32,
-    // MODE_FULL or MODE_UPDATE.
+    // MODE_FULL or MODE_UPDATE. The trace kernel does not read it: the host picks its pipeline
+    // by the mode instead (photon/trace.wgsl, TRACE_UPDATE).
     mode: u32,
     // View-ray segments per pixel (Vn).
     segments: u32,
