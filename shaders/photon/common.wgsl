@@ -255,7 +255,8 @@ const COUNTER_TOUCH: u32 = 15u;
 const COUNTER_RECOLOURED: u32 = 16u;
 // Opacity-stale segments whose last march ended at its cut-off (Segment::cut_off).
 const COUNTER_CUT: u32 = 17u;
-// Dirty-cell bits follow the counters.
+// Dirty-cell bits follow the counters (8 per hash cell), then one bit per pixel that an
+// update changed a segment of (mark_pixel_changed).
 const COUNTER_DIRTY: u32 = 18u;
 const GRID_RECORDS: u32 = 0u;
 const GRID_CHANGES: u32 = 1u;
@@ -539,6 +540,22 @@ fn dirty_index(c: vec3<i32>) -> u32 {
 fn grid_index(c: vec3<i32>) -> u32 {
     let d = photon.grid_dims;
     return (u32(c.z) * d.y + u32(c.y)) * d.x + u32(c.x);
+}
+
+// The counter word and bit of pixel `pixel`'s changed mark (after the dirty-cell bits).
+fn pixel_mark(pixel: u32) -> vec2<u32> {
+    let at = COUNTER_DIRTY + (8u * photon.cell_count + 31u) / 32u;
+    return vec2<u32>(at + pixel / 32u, 1u << (pixel % 32u));
+}
+
+// MODE_UPDATE: marks a pixel one of whose segments the update computes, so that its composite
+// runs (`composite` with COMPOSITE_CHANGED); the update clears the counters first. A bit
+// already set is not written again.
+fn mark_pixel_changed(pixel: u32) {
+    let m = pixel_mark(pixel);
+    if ((atomicLoad(&counters[m.x]) & m.y) == 0u) {
+        atomicOr(&counters[m.x], m.y);
+    }
 }
 
 // Data value at world position p (trilinear, shared/volume.wgsl).

@@ -233,6 +233,8 @@ pub struct PhotonPass {
     pub gather: wgpu::ComputePipeline,
     pub gather_sums: wgpu::ComputePipeline,
     pub composite: wgpu::ComputePipeline,
+    /// `composite` of the pixels an update changed (COMPOSITE_CHANGED).
+    pub composite_changed: wgpu::ComputePipeline,
     pub scatter_touch: wgpu::ComputePipeline,
     /// `scatter_touch` that also adds the changes to the per-sample sums (TOUCH_SUMS).
     pub scatter_touch_sums: wgpu::ComputePipeline,
@@ -315,6 +317,13 @@ impl PhotonPass {
             gather: gather_pipeline("photon gather", false),
             gather_sums: gather_pipeline("photon gather sums", true),
             composite: pipeline("photon composite", &gather, "composite"),
+            composite_changed: layout.specialized_pipeline(
+                gpu,
+                "photon composite changed",
+                &gather,
+                "composite",
+                &[("COMPOSITE_CHANGED", 1.0)],
+            ),
             scatter_touch: pipeline("photon scatter touch", &scatter, "scatter_touch"),
             scatter_touch_sums: layout.specialized_pipeline(
                 gpu,

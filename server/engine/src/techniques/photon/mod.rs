@@ -767,8 +767,10 @@ impl PhotonBudget {
             16
         };
         let accum_bytes = pixels * 16;
-        // The dirty-cell bits are of half-size cells: 8 per hash cell.
-        let counter_bytes = (COUNTER_WORDS as u64 + (8 * cells).div_ceil(32)) * 4;
+        // The dirty-cell bits are of half-size cells: 8 per hash cell; then a bit per pixel
+        // (`pixel_mark` in photon/common.wgsl).
+        let counter_bytes =
+            (COUNTER_WORDS as u64 + (8 * cells).div_ceil(32) + pixels.div_ceil(32)) * 4;
         let small = (TF_LUT_SIZE * 16
             + size_of::<SceneUniforms>()
             + size_of::<PhotonUniforms>()
@@ -1565,7 +1567,13 @@ impl Photon {
         }
         self.gather_rounds = gathering.rounds;
         let pixels = self.width * self.height;
-        self.submit_linear(engine, "photon composite", &engine.photon.composite, pixels);
+        // An update recomposites only the pixels whose segments it computed.
+        let (label, composite) = if gathering.mode == MODE_UPDATE {
+            ("photon composite changed", &engine.photon.composite_changed)
+        } else {
+            ("photon composite", &engine.photon.composite)
+        };
+        self.submit_linear(engine, label, composite, pixels);
         self.shown = self.passes;
         Ok(true)
     }
