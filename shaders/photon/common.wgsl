@@ -316,6 +316,34 @@ const SPATIAL_CELLS: u32 = 2u;
 // opacity did not from their sums and weights, and a changed photon updates the sums it
 // reaches (integer sums, exact).
 @group(0) @binding(18) var<storage, read_write> sample_sums: array<atomic<u32>>;
+// Per path p, its end and collision historygrams (PhotonPath::end_lo/hi, collisions_lo/hi) as
+// words 4p..4p+3, PATH_QUERY_ROW to a row: what `trace_mark` reads of every path in each
+// update. llvmpipe reads a storage buffer's words lane by lane behind bounds checks, a
+// storage texture's in one gather.
+@group(0) @binding(19) var path_queries: texture_storage_2d<r32uint, read_write>;
+const PATH_QUERY_ROW: u32 = 4096u;
+
+fn path_query_texel(p: u32, w: u32) -> vec2<i32> {
+    let i = p * 4u + w;
+    return vec2<i32>(i32(i % PATH_QUERY_ROW), i32(i / PATH_QUERY_ROW));
+}
+
+// Path p's end (xy) and collision (zw) historygrams.
+fn path_query_load(p: u32) -> vec4<u32> {
+    return vec4<u32>(
+        textureLoad(path_queries, path_query_texel(p, 0u)).x,
+        textureLoad(path_queries, path_query_texel(p, 1u)).x,
+        textureLoad(path_queries, path_query_texel(p, 2u)).x,
+        textureLoad(path_queries, path_query_texel(p, 3u)).x,
+    );
+}
+
+fn path_query_store(p: u32, end: vec2<u32>, collisions: vec2<u32>) {
+    textureStore(path_queries, path_query_texel(p, 0u), vec4<u32>(end.x));
+    textureStore(path_queries, path_query_texel(p, 1u), vec4<u32>(end.y));
+    textureStore(path_queries, path_query_texel(p, 2u), vec4<u32>(collisions.x));
+    textureStore(path_queries, path_query_texel(p, 3u), vec4<u32>(collisions.y));
+}
 
 const CHUNK_SLOTS: u32 = 4u;
 const CHUNK_NONE: u32 = 0xffffffffu;

@@ -299,9 +299,8 @@ fn trace_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
     if (p >= photon.path_count) {
         return;
     }
-    let path = paths[p];
-    if (hist_hits_rejection_query(path.end_lo, path.end_hi)
-        || hist_hits_collision_query(path.collisions_lo, path.collisions_hi)) {
+    let q = path_query_load(p);
+    if (hist_hits_rejection_query(q.x, q.y) || hist_hits_collision_query(q.z, q.w)) {
         retrace_list[atomicAdd(&counters[COUNTER_RETRACED], 1u)] = p;
     }
 }
@@ -604,6 +603,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         }
     }
     paths[p] = PhotonPath(count, hist.x, hist.y, collisions.x, collisions.y, head, 0u, 0u);
+    path_query_store(p, hist, collisions);
 }
 
 // Whether interaction k (k >= 1: a scattering) plays Russian roulette first (PhotonUniforms).

@@ -9,8 +9,8 @@ use voxlight_engine::techniques::photon::gpu::{
     COUNTER_CHANGES, COUNTER_CUT, COUNTER_DELTA, COUNTER_LIST, COUNTER_RECOLOURED,
     COUNTER_RETRACED, COUNTER_SCATTER, COUNTER_SCATTER_OVERFLOW, COUNTER_SEGMENTS, COUNTER_SPATIAL,
     COUNTER_TOUCH, COUNTER_WORDS, GRID_CHANGES, GRID_RECORDS, GatherState, MODE_FULL, MODE_UPDATE,
-    PhotonChange, PhotonEmitter, PhotonPath, PhotonRecord, PhotonUniforms, SAMPLE_WORDS,
-    SLOT_WORDS, SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
+    PATH_QUERY_ROW, PhotonChange, PhotonEmitter, PhotonPath, PhotonRecord, PhotonUniforms,
+    SAMPLE_WORDS, SLOT_WORDS, SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
 };
 
 fn assert_layout(module: &naga::Module, name: &str, size: usize, fields: &[(&str, usize)]) {
@@ -150,6 +150,7 @@ fn photon_constants_match_wgsl() {
         ("CHUNK_NONE", CHUNK_NONE),
         // The dirty-cell bits start right after the counters.
         ("COUNTER_DIRTY", COUNTER_WORDS as u32),
+        ("PATH_QUERY_ROW", PATH_QUERY_ROW),
     ] {
         assert_eq!(wgsl_u32(&module, name), value, "{name}");
     }

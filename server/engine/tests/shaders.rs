@@ -291,6 +291,15 @@ fn declared_kind(module: &naga::Module, var: &naga::GlobalVariable) -> &'static 
                         multi: false,
                     },
             } => "volume",
+            naga::TypeInner::Image {
+                dim: naga::ImageDimension::D2,
+                arrayed: false,
+                class:
+                    naga::ImageClass::Storage {
+                        format: naga::StorageFormat::R32Uint,
+                        access,
+                    },
+            } if access.contains(naga::StorageAccess::LOAD | naga::StorageAccess::STORE) => "words",
             ref other => panic!("{:?}: unexpected handle {other:?}", var.name),
         },
         other => panic!("{:?}: unexpected address space {other:?}", var.name),
@@ -303,6 +312,7 @@ fn rust_kind(binding: Binding) -> &'static str {
         Binding::Read => "read",
         Binding::ReadWrite => "read_write",
         Binding::Volume => "volume",
+        Binding::Words => "words",
     }
 }
 

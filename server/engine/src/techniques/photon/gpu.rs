@@ -195,16 +195,22 @@ pub const SPATIAL_CELLS: u32 = 2;
 /// Workgroup width of the 1D photon kernels.
 pub const WORKGROUP: u32 = 64;
 
-/// What bindings 0–18 hold (every pass of shaders/photon/ declares them all, in common.wgsl):
-/// scene, volume, TF, `PhotonUniforms`, the emitters, then the technique's buffers.
-pub const BINDINGS: [Binding; 19] = {
+/// What bindings 0–19 hold (every pass of shaders/photon/ declares them all, in common.wgsl):
+/// scene, volume, TF, `PhotonUniforms`, the emitters, then the technique's buffers, then the
+/// paths' query words (`path_queries`).
+pub const BINDINGS: [Binding; 20] = {
     use Binding::*;
     [
         Uniform, Volume, Read, Uniform, Read, ReadWrite, ReadWrite, ReadWrite, ReadWrite,
         ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite,
-        ReadWrite, ReadWrite,
+        ReadWrite, ReadWrite, Words,
     ]
 };
+
+/// Words per row of the `path_queries` texture (`PATH_QUERY_ROW` in photon/common.wgsl), and
+/// per path (its end and collision historygrams, as in `PhotonPath`).
+pub const PATH_QUERY_ROW: u32 = 4096;
+pub const PATH_QUERY_WORDS: u32 = 4;
 
 /// Slots per record chunk (`CHUNK_SLOTS` in photon/common.wgsl).
 pub const CHUNK_SLOTS: u32 = 4;
@@ -266,6 +272,7 @@ pub struct PhotonBindings<'a> {
     pub counters: &'a wgpu::Buffer,
     pub chunks: &'a wgpu::Buffer,
     pub sample_sums: &'a wgpu::Buffer,
+    pub path_queries: &'a wgpu::TextureView,
 }
 
 impl PhotonPass {
@@ -362,6 +369,7 @@ impl PhotonPass {
             buffer(16, b.scatter),
             buffer(17, b.chunks),
             buffer(18, b.sample_sums),
+            texture(19, b.path_queries),
         ];
         self.layout.bind_group(gpu, "photon", &entries)
     }

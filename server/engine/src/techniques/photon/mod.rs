@@ -624,6 +624,8 @@ pub struct PhotonBudget {
     pub counter_bytes: u64,
     /// The chunks' next pointers and per pass the chunks taken.
     pub chunk_bytes: u64,
+    /// Rows of the `path_queries` texture (`gpu::PATH_QUERY_ROW` words each).
+    pub path_query_rows: u32,
     pub total: u64,
 }
 
@@ -716,6 +718,9 @@ impl PhotonBudget {
         let pixels = width as u64 * height as u64;
         let record_bytes = records * size_of::<PhotonRecord>() as u64;
         let path_bytes = paths * size_of::<PhotonPath>() as u64;
+        let path_query_rows = (paths * gpu::PATH_QUERY_WORDS as u64)
+            .div_ceil(gpu::PATH_QUERY_ROW as u64)
+            .max(1);
         // Two grids (the records', an update's changes'), each cell starts then cursors.
         // After them, the scan's sum per block of cells (photon/grid.wgsl, block_sum_word).
         let grid_cell_bytes = (2 * (2 * cells + 1) + cells.div_ceil(SCAN_BLOCK)) * 4;
@@ -789,6 +794,7 @@ impl PhotonBudget {
             + scatter_bytes
             + sample_cache_bytes
             + accum_bytes
+            + path_query_rows * gpu::PATH_QUERY_ROW as u64 * 4
             + small;
         Ok(Self {
             paths,
@@ -815,6 +821,7 @@ impl PhotonBudget {
             accum_bytes,
             counter_bytes,
             chunk_bytes,
+            path_query_rows: path_query_rows.min(u32::MAX as u64) as u32,
             total,
         })
     }
@@ -848,6 +855,12 @@ impl PhotonBudget {
             return Err(EngineError::OutOfMemory {
                 needed: largest,
                 available: binding,
+            });
+        }
+        if self.path_query_rows > limits.max_texture_dimension_2d {
+            return Err(EngineError::OutOfMemory {
+                needed: self.path_query_rows as u64 * gpu::PATH_QUERY_ROW as u64 * 4,
+                available: limits.max_texture_dimension_2d as u64 * gpu::PATH_QUERY_ROW as u64 * 4,
             });
         }
         if self.records > u32::MAX as u64 / 2 {
@@ -889,6 +902,8 @@ struct PhotonBuffers {
     chunks: wgpu::Buffer,
     /// The per-sample photon sums (`PhotonParams::sample_cache_bytes`).
     sample_sums: wgpu::Buffer,
+    /// The paths' query words (`path_queries` in photon/common.wgsl).
+    path_queries: wgpu::TextureView,
 }
 
 impl PhotonBuffers {
@@ -945,6 +960,27 @@ impl PhotonBuffers {
             ),
             chunks,
             sample_sums: buffer("photon sample sums", budget.sample_cache_bytes, U::STORAGE),
+            path_queries: engine
+                .gpu
+                .device
+                .create_texture(&wgpu::TextureDescriptor {
+                    label: Some("photon path queries"),
+                    size: wgpu::Extent3d {
+                        width: gpu::PATH_QUERY_ROW,
+                        height: budget.path_query_rows,
+                        depth_or_array_layers: 1,
+                    },
+                    mip_level_count: 1,
+                    sample_count: 1,
+                    dimension: wgpu::TextureDimension::D2,
+                    format: wgpu::TextureFormat::R32Uint,
+                    usage: wgpu::TextureUsages::STORAGE_BINDING,
+                    view_formats: &[],
+                })
+                .create_view(&wgpu::TextureViewDescriptor {
+                    label: Some("photon path queries"),
+                    ..Default::default()
+                }),
         }
     }
 
@@ -1005,6 +1041,7 @@ impl PhotonBuffers {
                 counters: &self.counters,
                 chunks: &self.chunks,
                 sample_sums: &self.sample_sums,
+                path_queries: &self.path_queries,
             },
         )
     }
