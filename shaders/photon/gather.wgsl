@@ -41,9 +41,11 @@
 // PhotonBudget::sample_cache_samples > 0); see the header.
 override SAMPLE_SUMS: bool = false;
 
-// Whether this `composite` pipeline ends an update: it recomposites only the pixels whose
-// segments the update computed (mark_pixel_changed); every other pixel's output and
-// historygram union are what the last composite left. The composite reads every segment of
+// Whether this `composite` pipeline ends an update whose segments the marks passes listed
+// (gather_mark_stale, gather_mark_touched, recomposite_touched; not gather_mark, whose full
+// gathers must not pay for the marking): it recomposites only the pixels whose segments the
+// update computed (mark_pixel_changed); every other pixel's output and historygram union are
+// what the last composite left. The composite reads every segment of
 // each pixel it visits, which cost the chest CT's local edits 2.5–3.4 ms of ~13–33 on lavapipe.
 override COMPOSITE_CHANGED: bool = false;
 
@@ -115,6 +117,9 @@ fn gather_mark_touched(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
         atomicStore(&scatter[id], SEGMENT_UNTOUCHED);
         return;
     }
+    // A marked segment is computed (mark_segment lists or slots it) unless its ray misses the
+    // box, where recompositing the pixel changes nothing.
+    mark_pixel_changed(id / photon.segments);
     mark_segment(id);
 }
 
@@ -270,9 +275,6 @@ fn mark_segment(id: u32) {
         }
     }
     if (stale) {
-        if (photon.mode == MODE_UPDATE) {
-            mark_pixel_changed(pixel);
-        }
         start.k = first_lattice_index(hit, bounds.x, pixel_jitter(pixel));
         // Kept for a scattered segment too, in case the scatter overflows.
         gather_state[id] = start;

@@ -212,6 +212,9 @@ struct GatherInProgress {
     listed: u32,
     /// List slots of this round dispatched so far.
     next: u32,
+    /// Whether the marks passes marked every pixel whose segments this update computes, so
+    /// that only those are recomposited (`composite_changed`).
+    pixels_marked: bool,
 }
 
 /// One part of a gather round (`GatherInProgress::part`): what `gather_part` dispatches.
@@ -241,6 +244,7 @@ impl GatherInProgress {
             rounds: 0,
             listed,
             next: 0,
+            pixels_marked: false,
         }
     }
 
@@ -1555,7 +1559,10 @@ impl Photon {
             listed = self.counter(engine, COUNTER_LIST + 1)?;
             input = 1;
         }
-        self.gathering = Some(GatherInProgress::new(mode, query, listed, input));
+        self.gathering = Some(GatherInProgress {
+            pixels_marked: marked.is_some(),
+            ..GatherInProgress::new(mode, query, listed, input)
+        });
         Ok(())
     }
 
@@ -1604,8 +1611,8 @@ impl Photon {
         }
         self.gather_rounds = gathering.rounds;
         let pixels = self.width * self.height;
-        // An update recomposites only the pixels whose segments it computed.
-        let (label, composite) = if gathering.mode == MODE_UPDATE {
+        // An update whose marks passes marked its pixels recomposites only those.
+        let (label, composite) = if gathering.pixels_marked {
             ("photon composite changed", &engine.photon.composite_changed)
         } else {
             ("photon composite", &engine.photon.composite)
