@@ -577,8 +577,8 @@ fn pixel_mark(pixel: u32) -> vec2<u32> {
 }
 
 // An update's marks passes: marks a pixel one of whose segments the update computes, so that
-// its composite runs (`composite` with COMPOSITE_CHANGED); the update clears the counters first. A bit
-// already set is not written again.
+// its composite runs (`composite` with COMPOSITE_CHANGED); the update clears the counters
+// first. A bit already set is not written again.
 fn mark_pixel_changed(pixel: u32) {
     let m = pixel_mark(pixel);
     if ((atomicLoad(&counters[m.x]) & m.y) == 0u) {

@@ -45,8 +45,8 @@ override SAMPLE_SUMS: bool = false;
 // (gather_mark_stale, gather_mark_touched, recomposite_touched; not gather_mark, whose full
 // gathers must not pay for the marking): it recomposites only the pixels whose segments the
 // update computed (mark_pixel_changed); every other pixel's output and historygram union are
-// what the last composite left. The composite reads every segment of
-// each pixel it visits, which cost the chest CT's local edits 2.5–3.4 ms of ~13–33 on lavapipe.
+// what the last composite left. The composite reads every segment of each pixel it visits,
+// which cost the chest CT's local edits 2.5–3.4 ms of ~13–33 on lavapipe.
 override COMPOSITE_CHANGED: bool = false;
 
 // Whether a photon change recorded in the spatial historygram can reach the segment a..b.
