@@ -76,7 +76,7 @@ fn recorded_march(p: vec3<f32>, dir: vec3<f32>, t_max: f32, jitter: f32) -> f32 
             continue;
         }
         track_sample(x);
-        tau += medium_at(x).a * step;
+        tau += extinction_at(x) * step;
         if (tau > SHADOW_TAU_CUTOFF) {
             return 0.0;
         }

@@ -58,7 +58,7 @@ fn view_weight(origin: vec3<f32>, dir: vec3<f32>, t0: f32, t1: f32, jitter: f32)
             k = skip_empty_cell(origin, dir, cell, t0, scene.step, jitter, k);
             continue;
         }
-        let alpha = 1.0 - exp(-medium_at(p).a * scene.step);
+        let alpha = 1.0 - exp(-extinction_at(p) * scene.step);
         weight += transmit * alpha;
         transmit *= 1.0 - alpha;
         k += 1.0;

@@ -34,7 +34,7 @@ var<workgroup> start_entries: u32;
 
 // Δ for an entry centred at p: params.delta, or less where a mean free path is shorter.
 fn entry_delta(p: vec3<f32>) -> f32 {
-    let sigma_t = medium_at(p).a;
+    let sigma_t = extinction_at(p);
     if (params.delta_free_paths <= 0.0 || sigma_t <= 0.0) {
         return params.delta;
     }
@@ -46,9 +46,9 @@ fn entry_delta(p: vec3<f32>) -> f32 {
 fn extinction_normal(p: vec3<f32>) -> vec3<f32> {
     let h = params.voxel;
     let gradient = vec3<f32>(
-        medium_at(p + vec3<f32>(h, 0.0, 0.0)).a - medium_at(p - vec3<f32>(h, 0.0, 0.0)).a,
-        medium_at(p + vec3<f32>(0.0, h, 0.0)).a - medium_at(p - vec3<f32>(0.0, h, 0.0)).a,
-        medium_at(p + vec3<f32>(0.0, 0.0, h)).a - medium_at(p - vec3<f32>(0.0, 0.0, h)).a,
+        extinction_at(p + vec3<f32>(h, 0.0, 0.0)) - extinction_at(p - vec3<f32>(h, 0.0, 0.0)),
+        extinction_at(p + vec3<f32>(0.0, h, 0.0)) - extinction_at(p - vec3<f32>(0.0, h, 0.0)),
+        extinction_at(p + vec3<f32>(0.0, 0.0, h)) - extinction_at(p - vec3<f32>(0.0, 0.0, h)),
     );
     let len = length(gradient);
     if (len <= 1e-12) {
@@ -62,7 +62,7 @@ fn extinction_normal(p: vec3<f32>) -> vec3<f32> {
 // with the extinction, so the walk stops where ∫|σt(x) − σt(x0)| dx exceeds ln(1 + ε) (a
 // zone in soft tissue does not reach into the bone beside it). Half-voxel steps.
 fn extinction_reach(x0: vec3<f32>, axis: vec3<f32>, limit: f32) -> f32 {
-    let sigma0 = medium_at(x0).a;
+    let sigma0 = extinction_at(x0);
     let tolerance = log(1.0 + params.epsilon);
     let step = 0.5 * params.voxel;
     var excess = 0.0;
@@ -72,7 +72,7 @@ fn extinction_reach(x0: vec3<f32>, axis: vec3<f32>, limit: f32) -> f32 {
             return limit;
         }
         s += step;
-        excess += abs(medium_at(x0 + axis * s).a - sigma0) * step;
+        excess += abs(extinction_at(x0 + axis * s) - sigma0) * step;
         if (excess > tolerance) {
             return max(s - step, params.min_radius);
         }

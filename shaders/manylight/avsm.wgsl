@@ -108,7 +108,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
         let v = sample_volume(box_relative(x));
         bins |= value_bin_bits(v);
-        let sigma = classify(v).a * scene.density_scale;
+        let sigma = classify_opacity(v) * scene.density_scale;
         if (sigma > 0.0) {
             // The curve is flat up to the start of this step: keep its corner.
             if (tau == 0.0 || nodes[count - 1u].x < t - 0.5 * step - 1e-6) {

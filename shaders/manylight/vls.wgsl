@@ -52,7 +52,7 @@ fn delta_track_fixed(origin: vec3<f32>, dir: vec3<f32>, t0: f32, t1: f32, rng: p
         }
         let v = sample_volume(box_relative(origin + dir * t));
         opacity_bins |= value_bin_bits(v);
-        if (rng_next(rng) * majorant < classify(v).a * scene.density_scale) {
+        if (rng_next(rng) * majorant < classify_opacity(v) * scene.density_scale) {
             return vec2<f32>(t, 1.0);
         }
     }
@@ -75,7 +75,7 @@ fn unit_optical_depth(origin: vec3<f32>, dir: vec3<f32>, t0: f32, t1: f32) -> f3
     for (var k = 0u; k < full; k++) {
         let v = sample_volume(box_relative(origin + dir * (t0 + (f32(k) + 0.5) * step)));
         opacity_bins |= value_bin_bits(v);
-        tau += classify(v).a;
+        tau += classify_opacity(v);
     }
     tau *= step;
     // The last partial step.
@@ -84,7 +84,7 @@ fn unit_optical_depth(origin: vec3<f32>, dir: vec3<f32>, t0: f32, t1: f32) -> f3
     if (rest > 0.0) {
         let v = sample_volume(box_relative(origin + dir * (t0 + covered + 0.5 * rest)));
         opacity_bins |= value_bin_bits(v);
-        tau += classify(v).a * rest;
+        tau += classify_opacity(v) * rest;
     }
     return tau;
 }

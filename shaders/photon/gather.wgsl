@@ -421,7 +421,7 @@ fn march_from_sums(id: u32, pixel: u32, dir: vec3<f32>, hit: vec2<f32>, bounds: 
         }
         let v = data_at(scene.eye + dir * t);
         hist |= hist_bit(v);
-        let sigma = classify(v).a * scene.density_scale;
+        let sigma = classify_opacity(v) * scene.density_scale;
         if (sigma <= 0.0) {
             sample_set_weight(kept, 0.0);
             k += 1.0;
@@ -494,7 +494,7 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
     var grid = segment_grid;
     var acc = FixedSum(st.color_lo, st.color_hi);
     if (st.cell < NEXT_SAMPLE) {
-        sigma = classify(data_at(x)).a * scene.density_scale;
+        sigma = classify_opacity(data_at(x)) * scene.density_scale;
         lead = select(sample_weight(st.transmit, sigma), sum_lead(), cached);
         if (cached) {
             grid = sample_grid(kept);
@@ -542,7 +542,7 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
             let bit = hist_bit(v);
             st.hist_lo |= bit.x;
             st.hist_hi |= bit.y;
-            sigma = classify(v).a * scene.density_scale;
+            sigma = classify_opacity(v) * scene.density_scale;
             kept = sample_entry(pixel, st.k);
             if (sigma <= 0.0) {
                 if (cached) {

@@ -62,7 +62,7 @@ fn scatter_weights(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
                 break;
             }
             let x = scene.eye + dir * t;
-            let sigma = classify(data_at(x)).a * scene.density_scale;
+            let sigma = classify_opacity(data_at(x)) * scene.density_scale;
             if (sigma > 0.0) {
                 weight = sample_weight(transmit, sigma);
                 transmit *= exp(-sigma * photon.gather_step);

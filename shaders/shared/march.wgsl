@@ -31,7 +31,7 @@ fn transmittance_with_step(p: vec3<f32>, dir: vec3<f32>, t_max: f32, jitter: f32
             k = skip_empty_cell(p, dir, cell, hit.x, step, jitter, k);
             continue;
         }
-        tau += medium_at(x).a * step;
+        tau += extinction_at(x) * step;
         if (tau > SHADOW_TAU_CUTOFF) {
             return 0.0;
         }

@@ -12,6 +12,11 @@ fn medium_at(p: vec3<f32>) -> vec4<f32> {
     return vec4<f32>(c.rgb, c.a * scene.density_scale);
 }
 
+// Extinction sigma_t at world position p: medium_at(p).a without loading the albedo.
+fn extinction_at(p: vec3<f32>) -> f32 {
+    return classify_opacity(sample_volume(box_relative(p))) * scene.density_scale;
+}
+
 // Macrocell containing box-relative position u.
 fn cell_of(u: vec3<f32>) -> vec3<u32> {
     let dims = vec3<f32>(textureDimensions(volume_tex));

@@ -44,7 +44,7 @@ fn ratio_transmittance(p: vec3<f32>, dir: vec3<f32>, t_max: f32, rng: ptr<functi
         }
         t += free_flight;
         track_sample(p + dir * t);
-        tr *= max(0.0, 1.0 - medium_at(p + dir * t).a / majorant);
+        tr *= max(0.0, 1.0 - extinction_at(p + dir * t) / majorant);
         if (tr < RATIO_ROULETTE) {
             if (rng_next(rng) < 0.5) {
                 return 0.0;

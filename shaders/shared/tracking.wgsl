@@ -31,7 +31,7 @@ fn delta_track(origin: vec3<f32>, dir: vec3<f32>, t0: f32, t1: f32, rng: ptr<fun
         }
         t += free_flight;
         track_sample(origin + dir * t);
-        if (rng_next(rng) * majorant < medium_at(origin + dir * t).a) {
+        if (rng_next(rng) * majorant < extinction_at(origin + dir * t)) {
             return vec2<f32>(t, 1.0);
         }
     }

@@ -47,3 +47,12 @@ fn classify(v: f32) -> vec4<f32> {
     let i = min(u32(x), TF_LUT_SIZE - 2u);
     return mix(tf_lut[i], tf_lut[i + 1u], x - f32(i));
 }
+
+// classify(v).a alone, the same bits (mix works per component). Where only the opacity is
+// needed: llvmpipe loads a storage buffer lane by lane, and a whole entry costs about 2.5 times
+// one word (photon's remarch_from_sums: 4.1 ms → 2.9 ms on the chest CT, stop 44).
+fn classify_opacity(v: f32) -> f32 {
+    let x = clamp(v, 0.0, 1.0) * f32(TF_LUT_SIZE - 1u);
+    let i = min(u32(x), TF_LUT_SIZE - 2u);
+    return mix(tf_lut[i].a, tf_lut[i + 1u].a, x - f32(i));
+}
