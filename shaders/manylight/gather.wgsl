@@ -11,7 +11,7 @@
 
 @group(0) @binding(0) var<uniform> scene: SceneUniforms;
 @group(0) @binding(1) var volume_tex: texture_3d<f32>;
-@group(0) @binding(2) var<storage, read> tf_lut: array<vec4<f32>>;
+@group(0) @binding(2) var tf_lut: texture_2d<f32>;
 @group(0) @binding(4) var<storage, read_write> accum: array<vec4<f32>>;
 @group(0) @binding(5) var<storage, read> cell_max_opacity: array<f32>;
 @group(0) @binding(6) var<uniform> ml: ManylightParams;

@@ -271,7 +271,7 @@ const SPATIAL_CELLS: u32 = 2u;
 
 @group(0) @binding(0) var<uniform> scene: SceneUniforms;
 @group(0) @binding(1) var volume_tex: texture_3d<f32>;
-@group(0) @binding(2) var<storage, read> tf_lut: array<vec4<f32>>;
+@group(0) @binding(2) var tf_lut: texture_2d<f32>;
 @group(0) @binding(3) var<uniform> photon: PhotonUniforms;
 @group(0) @binding(4) var<storage, read> emitters: array<PhotonEmitter>;
 @group(0) @binding(5) var<storage, read_write> records: array<PhotonRecord>;

@@ -319,7 +319,7 @@ fn tracking_opacity(v: f32) -> f32 {
     let x = clamp(v, 0.0, 1.0) * f32(TF_LUT_SIZE - 1u);
     let i = min(u32(x), TF_LUT_SIZE - 2u);
     let f = x - f32(i);
-    return tf_lut[i].a * (1.0 - f) + tf_lut[i + 1u].a * f;
+    return tf_entry(i).a * (1.0 - f) + tf_entry(i + 1u).a * f;
 }
 
 @compute @workgroup_size(64)

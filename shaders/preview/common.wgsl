@@ -36,7 +36,7 @@ struct PreviewParams {
 
 @group(0) @binding(0) var<uniform> scene: SceneUniforms;
 @group(0) @binding(1) var volume_tex: texture_3d<f32>;
-@group(0) @binding(2) var<storage, read> tf_lut: array<vec4<f32>>;
+@group(0) @binding(2) var tf_lut: texture_2d<f32>;
 // Uniform, not storage (shared/scene.wgsl, MAX_LIGHTS): from storage the chest CT's light volume took
 // ~90 s on lavapipe, from a uniform ~3 s.
 @group(0) @binding(3) var<uniform> lights: array<GpuLight, MAX_LIGHTS>;

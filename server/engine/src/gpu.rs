@@ -6,6 +6,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use crate::EngineError;
+use crate::tf::TF_LUT_SIZE;
 
 /// One GPU (or lavapipe) with its queue. Cheap to share behind an `Arc`.
 pub struct Gpu {
@@ -166,6 +167,29 @@ impl Gpu {
         self.loop_limit().map(|limit| (limit - limit / 10) / lanes)
     }
 
+    /// A per-session TF lookup table the queue can write (`TfTexture::write`).
+    pub fn tf_texture(&self, label: &str) -> TfTexture {
+        let texture = self.device.create_texture(&wgpu::TextureDescriptor {
+            label: Some(label),
+            size: wgpu::Extent3d {
+                width: TF_LUT_SIZE as u32,
+                height: 1,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: wgpu::TextureFormat::Rgba32Float,
+            usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+            view_formats: &[],
+        });
+        let view = texture.create_view(&wgpu::TextureViewDescriptor {
+            label: Some(label),
+            ..Default::default()
+        });
+        TfTexture { texture, view }
+    }
+
     /// A per-session buffer the queue can write (COPY_DST added), at least 16 bytes.
     pub fn buffer(&self, label: &str, size: u64, usage: wgpu::BufferUsages) -> wgpu::Buffer {
         self.device.create_buffer(&wgpu::BufferDescriptor {
@@ -248,5 +272,37 @@ mod tests {
         let gpu = info(wgpu::DeviceType::DiscreteGpu, wgpu::Backend::Gl);
         let cpu = info(wgpu::DeviceType::Cpu, wgpu::Backend::Vulkan);
         assert!(adapter_rank(&gpu) > adapter_rank(&cpu));
+    }
+}
+
+/// The TF lookup table on the GPU: `TF_LUT_SIZE` rgba32float texels in one row (`tf_lut:
+/// texture_2d<f32>` in shaders/shared/volume.wgsl, read with `textureLoad`). A texture, not a
+/// storage buffer: llvmpipe loads a buffer's `vec4` lane by lane, each behind a bounds check,
+/// and a texel of every lane in one gather (stop 44, docs/benchmarks.md).
+pub struct TfTexture {
+    texture: wgpu::Texture,
+    pub view: wgpu::TextureView,
+}
+
+impl TfTexture {
+    pub const BYTES: u64 = (TF_LUT_SIZE * 16) as u64;
+
+    /// Uploads a baked table (`tf::bake`, `TF_LUT_SIZE` entries).
+    pub fn write(&self, queue: &wgpu::Queue, lut: &[[f32; 4]]) {
+        debug_assert_eq!(lut.len(), TF_LUT_SIZE);
+        queue.write_texture(
+            self.texture.as_image_copy(),
+            bytemuck::cast_slice(lut),
+            wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some((lut.len() * 16) as u32),
+                rows_per_image: None,
+            },
+            wgpu::Extent3d {
+                width: lut.len() as u32,
+                height: 1,
+                depth_or_array_layers: 1,
+            },
+        );
     }
 }

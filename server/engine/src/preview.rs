@@ -15,11 +15,12 @@ use std::time::{Duration, Instant};
 use voxlight_protocol::MAX_LIGHTS;
 
 use crate::frame::Frame;
+use crate::gpu::TfTexture;
 use crate::passes::preview::{PreviewBindings, PreviewParams};
 use crate::passes::tonemap::ToneParams;
 use crate::scene_gpu::{GpuLight, SceneUniforms, gpu_lights};
 use crate::techniques::progressive::band_rows;
-use crate::tf::{TF_LUT_SIZE, bake};
+use crate::tf::bake;
 use crate::{Engine, EngineError, GpuVolume, Scene};
 
 pub use crate::brightness::{BrightnessMatch, PreviewMeans, mean_rgb};
@@ -81,7 +82,7 @@ pub struct Preview {
     volume: Arc<GpuVolume>,
     scene_buf: wgpu::Buffer,
     params_buf: wgpu::Buffer,
-    tf_lut: wgpu::Buffer,
+    tf_lut: TfTexture,
     lights: wgpu::Buffer,
     cell_max_opacity: wgpu::Buffer,
     light_volume: wgpu::Buffer,
@@ -155,7 +156,7 @@ impl Preview {
             |label, size| gpu.buffer(label, size, storage | wgpu::BufferUsages::COPY_SRC);
         let scene_buf = uniform("preview scene", size_of::<SceneUniforms>());
         let params_buf = uniform("preview params", size_of::<PreviewParams>());
-        let tf_lut = gpu.buffer("preview tf lut", (TF_LUT_SIZE * 16) as u64, storage);
+        let tf_lut = gpu.tf_texture("preview tf lut");
         let lights = uniform("preview lights", MAX_LIGHTS * size_of::<GpuLight>());
         let cell_max_opacity = gpu.buffer(
             "preview cell max opacity",
@@ -186,7 +187,7 @@ impl Preview {
             &PreviewBindings {
                 scene: &scene_buf,
                 volume: &volume.view,
-                tf_lut: &tf_lut,
+                tf_lut: &tf_lut.view,
                 lights: &lights,
                 cell_max_opacity: &cell_max_opacity,
                 params: &params_buf,
@@ -231,7 +232,6 @@ impl Preview {
         [
             &self.scene_buf,
             &self.params_buf,
-            &self.tf_lut,
             &self.lights,
             &self.cell_max_opacity,
             &self.light_volume,
@@ -242,7 +242,8 @@ impl Preview {
         ]
         .iter()
         .map(|b| b.size())
-        .sum()
+        .sum::<u64>()
+            + TfTexture::BYTES
     }
 
     /// How many times the light volume was built (for tests: camera moves never rebuild it).
@@ -296,8 +297,7 @@ impl Preview {
             .write_buffer(&self.scene_buf, 0, bytemuck::bytes_of(&uniforms));
         let lut = bake(&scene.tf);
         if lut != self.lut {
-            gpu.queue
-                .write_buffer(&self.tf_lut, 0, bytemuck::cast_slice(&lut));
+            self.tf_lut.write(&gpu.queue, &lut);
             let cells = self.volume.ranges.max_opacity(&lut);
             gpu.queue
                 .write_buffer(&self.cell_max_opacity, 0, bytemuck::cast_slice(&cells));

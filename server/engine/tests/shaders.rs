@@ -295,6 +295,15 @@ fn declared_kind(module: &naga::Module, var: &naga::GlobalVariable) -> &'static 
                 dim: naga::ImageDimension::D2,
                 arrayed: false,
                 class:
+                    naga::ImageClass::Sampled {
+                        kind: naga::ScalarKind::Float,
+                        multi: false,
+                    },
+            } => "lut",
+            naga::TypeInner::Image {
+                dim: naga::ImageDimension::D2,
+                arrayed: false,
+                class:
                     naga::ImageClass::Storage {
                         format: naga::StorageFormat::R32Uint,
                         access,
@@ -312,6 +321,7 @@ fn rust_kind(binding: Binding) -> &'static str {
         Binding::Read => "read",
         Binding::ReadWrite => "read_write",
         Binding::Volume => "volume",
+        Binding::Lut => "lut",
         Binding::Words => "words",
     }
 }

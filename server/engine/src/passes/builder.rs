@@ -24,6 +24,9 @@ pub enum Binding {
     ReadWrite,
     /// The volume: `texture_3d<f32>`, read with `textureLoad`.
     Volume,
+    /// The TF lookup table: `texture_2d<f32>` (`gpu::TfTexture`, one row), read with
+    /// `textureLoad`.
+    Lut,
     /// `texture_storage_2d<r32uint, read_write>`: words that hot kernels read. llvmpipe (the CI's
     /// adapter) loads a storage buffer's word lane by lane, each behind a bounds check, and a
     /// storage texture's as one gather, several times faster.
@@ -47,6 +50,11 @@ impl Binding {
             Binding::Volume => wgpu::BindingType::Texture {
                 sample_type: wgpu::TextureSampleType::Float { filterable: false },
                 view_dimension: wgpu::TextureViewDimension::D3,
+                multisampled: false,
+            },
+            Binding::Lut => wgpu::BindingType::Texture {
+                sample_type: wgpu::TextureSampleType::Float { filterable: false },
+                view_dimension: wgpu::TextureViewDimension::D2,
                 multisampled: false,
             },
             Binding::Words => wgpu::BindingType::StorageTexture {

@@ -10,7 +10,7 @@ use crate::Gpu;
 /// What bindings 0–5 hold (the techniques that build on an estimator bind these first).
 pub const BINDINGS: [Binding; 6] = {
     use Binding::*;
-    [Uniform, Volume, Read, Uniform, ReadWrite, Read]
+    [Uniform, Volume, Lut, Uniform, ReadWrite, Read]
 };
 
 pub struct EstimatorPass {
@@ -23,7 +23,7 @@ pub struct EstimatorPass {
 pub struct EstimatorBindings<'a> {
     pub scene: &'a wgpu::Buffer,
     pub volume: &'a wgpu::TextureView,
-    pub tf_lut: &'a wgpu::Buffer,
+    pub tf_lut: &'a wgpu::TextureView,
     pub lights: &'a wgpu::Buffer,
     pub accum: &'a wgpu::Buffer,
     pub cell_max_opacity: &'a wgpu::Buffer,
@@ -35,7 +35,7 @@ impl<'a> EstimatorBindings<'a> {
         [
             buffer(0, self.scene),
             texture(1, self.volume),
-            buffer(2, self.tf_lut),
+            texture(2, self.tf_lut),
             buffer(3, self.lights),
             buffer(4, self.accum),
             buffer(5, self.cell_max_opacity),

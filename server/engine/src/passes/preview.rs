@@ -34,7 +34,7 @@ const LIGHT_TILE: u32 = 8;
 pub const BINDINGS: [Binding; 9] = {
     use Binding::*;
     [
-        Uniform, Volume, Read, Uniform, Read, Uniform, ReadWrite, ReadWrite, ReadWrite,
+        Uniform, Volume, Lut, Uniform, Read, Uniform, ReadWrite, ReadWrite, ReadWrite,
     ]
 };
 
@@ -48,7 +48,7 @@ pub struct PreviewPasses {
 pub struct PreviewBindings<'a> {
     pub scene: &'a wgpu::Buffer,
     pub volume: &'a wgpu::TextureView,
-    pub tf_lut: &'a wgpu::Buffer,
+    pub tf_lut: &'a wgpu::TextureView,
     pub lights: &'a wgpu::Buffer,
     pub cell_max_opacity: &'a wgpu::Buffer,
     pub params: &'a wgpu::Buffer,
@@ -76,7 +76,7 @@ impl PreviewPasses {
         let entries = [
             buffer(0, b.scene),
             texture(1, b.volume),
-            buffer(2, b.tf_lut),
+            texture(2, b.tf_lut),
             buffer(3, b.lights),
             buffer(4, b.cell_max_opacity),
             buffer(5, b.params),

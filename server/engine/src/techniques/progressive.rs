@@ -17,6 +17,7 @@ use std::time::{Duration, Instant};
 
 use voxlight_protocol::MAX_LIGHTS;
 
+use crate::gpu::TfTexture;
 use crate::gpu_timer::GpuTimer;
 use crate::passes::builder;
 use crate::passes::estimator::{EstimatorBindings, EstimatorPass};
@@ -52,7 +53,7 @@ pub struct Progressive {
     estimator: Estimator,
     volume: Arc<GpuVolume>,
     scene_buf: wgpu::Buffer,
-    tf_lut: wgpu::Buffer,
+    tf_lut: TfTexture,
     lights: wgpu::Buffer,
     accum: wgpu::Buffer,
     cell_max_opacity: wgpu::Buffer,
@@ -127,7 +128,7 @@ impl Progressive {
             size_of::<SceneUniforms>() as u64,
             uniform,
         );
-        let tf_lut = gpu.buffer("estimator tf lut", (TF_LUT_SIZE * 16) as u64, storage);
+        let tf_lut = gpu.tf_texture("estimator tf lut");
         let lights_size = (MAX_LIGHTS * size_of::<GpuLight>()) as u64;
         let lights = gpu.buffer("estimator lights", lights_size, uniform);
         let (width, height) = (scene.viewport.width, scene.viewport.height);
@@ -141,7 +142,7 @@ impl Progressive {
             &EstimatorBindings {
                 scene: &scene_buf,
                 volume: &volume.view,
-                tf_lut: &tf_lut,
+                tf_lut: &tf_lut.view,
                 lights: &lights,
                 accum: &accum,
                 cell_max_opacity: &cell_max_opacity,
@@ -253,7 +254,7 @@ impl Progressive {
         EstimatorBindings {
             scene: &self.scene_buf,
             volume: &self.volume.view,
-            tf_lut: &self.tf_lut,
+            tf_lut: &self.tf_lut.view,
             lights: &self.lights,
             accum: &self.accum,
             cell_max_opacity: &self.cell_max_opacity,
@@ -289,7 +290,7 @@ impl Progressive {
     fn write_tf(&self, engine: &Engine, scene: &Scene) {
         let lut = bake(&scene.tf);
         let queue = &engine.gpu.queue;
-        queue.write_buffer(&self.tf_lut, 0, bytemuck::cast_slice(&lut));
+        self.tf_lut.write(queue, &lut);
         let cells = self.volume.ranges.max_opacity(&lut);
         queue.write_buffer(&self.cell_max_opacity, 0, bytemuck::cast_slice(&cells));
     }

@@ -192,7 +192,7 @@ pub const BINDINGS: [Binding; 17] = {
     use Binding::*;
     let dispatch = Dynamic(size_of::<DispatchInfo>() as u64);
     [
-        Uniform, Volume, Read, Uniform, ReadWrite, Read, Uniform, dispatch, ReadWrite, ReadWrite,
+        Uniform, Volume, Lut, Uniform, ReadWrite, Read, Uniform, dispatch, ReadWrite, ReadWrite,
         Read, ReadWrite, ReadWrite, ReadWrite, ReadWrite, Read, ReadWrite,
     ]
 };

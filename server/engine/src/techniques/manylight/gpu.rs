@@ -116,7 +116,7 @@ pub const BINDINGS: [Binding; 14] = {
     use Binding::*;
     let chunk = Dynamic(size_of::<GatherChunk>() as u64);
     [
-        Uniform, Volume, Read, Uniform, ReadWrite, Read, Uniform, ReadWrite, ReadWrite, chunk,
+        Uniform, Volume, Lut, Uniform, ReadWrite, Read, Uniform, ReadWrite, ReadWrite, chunk,
         ReadWrite, Read, Read, ReadWrite,
     ]
 };

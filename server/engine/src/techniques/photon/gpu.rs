@@ -201,9 +201,9 @@ pub const WORKGROUP: u32 = 64;
 pub const BINDINGS: [Binding; 20] = {
     use Binding::*;
     [
-        Uniform, Volume, Read, Uniform, Read, ReadWrite, ReadWrite, ReadWrite, ReadWrite,
+        Uniform, Volume, Lut, Uniform, Read, ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite,
         ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite,
-        ReadWrite, ReadWrite, Words,
+        ReadWrite, Words,
     ]
 };
 
@@ -255,7 +255,7 @@ pub struct PhotonPass {
 pub struct PhotonBindings<'a> {
     pub scene: &'a wgpu::Buffer,
     pub volume: &'a wgpu::TextureView,
-    pub tf_lut: &'a wgpu::Buffer,
+    pub tf_lut: &'a wgpu::TextureView,
     pub uniforms: &'a wgpu::Buffer,
     pub emitters: &'a wgpu::Buffer,
     pub records: &'a wgpu::Buffer,
@@ -352,7 +352,7 @@ impl PhotonPass {
         let entries = [
             buffer(0, b.scene),
             texture(1, b.volume),
-            buffer(2, b.tf_lut),
+            texture(2, b.tf_lut),
             buffer(3, b.uniforms),
             buffer(4, b.emitters),
             buffer(5, b.records),

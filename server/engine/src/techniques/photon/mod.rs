@@ -39,6 +39,7 @@ use std::time::{Duration, Instant};
 
 use voxlight_protocol::{Light, TechniqueDetails, TransferFunction};
 
+use crate::gpu::TfTexture;
 use crate::scene_gpu::{SceneUniforms, default_step};
 use crate::technique::{StepReport, Technique, TechniqueStats};
 use crate::techniques::photon::gpu::{
@@ -886,7 +887,7 @@ impl PhotonBudget {
 /// One session's buffers, named as `PhotonBindings` names them.
 struct PhotonBuffers {
     scene: wgpu::Buffer,
-    tf_lut: wgpu::Buffer,
+    tf_lut: TfTexture,
     uniforms: wgpu::Buffer,
     emitters: wgpu::Buffer,
     records: wgpu::Buffer,
@@ -923,7 +924,7 @@ impl PhotonBuffers {
                 size_of::<SceneUniforms>() as u64,
                 U::UNIFORM,
             ),
-            tf_lut: buffer("photon tf lut", (TF_LUT_SIZE * 16) as u64, U::STORAGE),
+            tf_lut: engine.gpu.tf_texture("photon tf lut"),
             uniforms: buffer(
                 "photon uniforms",
                 size_of::<PhotonUniforms>() as u64,
@@ -1028,7 +1029,7 @@ impl PhotonBuffers {
             &PhotonBindings {
                 scene: &self.scene,
                 volume: &volume.view,
-                tf_lut: &self.tf_lut,
+                tf_lut: &self.tf_lut.view,
                 uniforms: &self.uniforms,
                 emitters: &self.emitters,
                 records: &self.records,
@@ -1208,10 +1209,7 @@ impl Photon {
 
     fn write_tf(&self, engine: &Engine, scene: &Scene) {
         let lut = bake(&scene.tf);
-        engine
-            .gpu
-            .queue
-            .write_buffer(&self.buffers.tf_lut, 0, bytemuck::cast_slice(&lut));
+        self.buffers.tf_lut.write(&engine.gpu.queue, &lut);
     }
 
     /// A path's flights at most (`bounces`), or with Russian roulette about the expected
