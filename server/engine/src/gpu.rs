@@ -259,22 +259,6 @@ fn adapter_rank(info: &wgpu::AdapterInfo) -> (u8, u8) {
     (kind, backend)
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn info(device_type: wgpu::DeviceType, backend: wgpu::Backend) -> wgpu::AdapterInfo {
-        wgpu::AdapterInfo::new(device_type, backend)
-    }
-
-    #[test]
-    fn discrete_beats_cpu() {
-        let gpu = info(wgpu::DeviceType::DiscreteGpu, wgpu::Backend::Gl);
-        let cpu = info(wgpu::DeviceType::Cpu, wgpu::Backend::Vulkan);
-        assert!(adapter_rank(&gpu) > adapter_rank(&cpu));
-    }
-}
-
 /// The TF lookup table on the GPU: `TF_LUT_SIZE` rgba32float texels in one row (`tf_lut:
 /// texture_2d<f32>` in shaders/shared/volume.wgsl, read with `textureLoad`). A texture, not a
 /// storage buffer: llvmpipe loads a buffer's `vec4` lane by lane, each behind a bounds check,
@@ -304,5 +288,21 @@ impl TfTexture {
                 depth_or_array_layers: 1,
             },
         );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn info(device_type: wgpu::DeviceType, backend: wgpu::Backend) -> wgpu::AdapterInfo {
+        wgpu::AdapterInfo::new(device_type, backend)
+    }
+
+    #[test]
+    fn discrete_beats_cpu() {
+        let gpu = info(wgpu::DeviceType::DiscreteGpu, wgpu::Backend::Gl);
+        let cpu = info(wgpu::DeviceType::Cpu, wgpu::Backend::Vulkan);
+        assert!(adapter_rank(&gpu) > adapter_rank(&cpu));
     }
 }
