@@ -12,7 +12,7 @@ fn medium_at(p: vec3<f32>) -> vec4<f32> {
     return vec4<f32>(c.rgb, c.a * scene.density_scale);
 }
 
-// Extinction sigma_t at world position p: medium_at(p).a without loading the albedo.
+// Extinction sigma_t at world position p: medium_at(p).a.
 fn extinction_at(p: vec3<f32>) -> f32 {
     return classify_opacity(sample_volume(box_relative(p))) * scene.density_scale;
 }

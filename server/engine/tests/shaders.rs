@@ -282,24 +282,22 @@ fn declared_kind(module: &naga::Module, var: &naga::GlobalVariable) -> &'static 
         }
         naga::AddressSpace::Storage { .. } => "read",
         naga::AddressSpace::Handle => match module.types[var.ty].inner {
+            // The volume (3D) and the TF lookup table (one 2D row), read with `textureLoad`.
             naga::TypeInner::Image {
-                dim: naga::ImageDimension::D3,
+                dim: dim @ (naga::ImageDimension::D3 | naga::ImageDimension::D2),
                 arrayed: false,
                 class:
                     naga::ImageClass::Sampled {
                         kind: naga::ScalarKind::Float,
                         multi: false,
                     },
-            } => "volume",
-            naga::TypeInner::Image {
-                dim: naga::ImageDimension::D2,
-                arrayed: false,
-                class:
-                    naga::ImageClass::Sampled {
-                        kind: naga::ScalarKind::Float,
-                        multi: false,
-                    },
-            } => "lut",
+            } => {
+                if dim == naga::ImageDimension::D3 {
+                    "volume"
+                } else {
+                    "lut"
+                }
+            }
             naga::TypeInner::Image {
                 dim: naga::ImageDimension::D2,
                 arrayed: false,

@@ -23,7 +23,7 @@ use crate::passes::builder;
 use crate::passes::estimator::{EstimatorBindings, EstimatorPass};
 use crate::scene_gpu::{GpuLight, SceneUniforms, gpu_lights};
 use crate::technique::{StepReport, Technique, TechniqueStats};
-use crate::tf::{TF_LUT_SIZE, bake};
+use crate::tf::bake;
 use crate::{Change, Engine, EngineError, GpuVolume, Scene};
 
 /// Which estimator a `Progressive` technique runs.
@@ -421,7 +421,7 @@ impl Technique for Progressive {
             iteration: self.iteration,
             memory_bytes: accum_bytes(self.width, self.height)
                 + self.cell_max_opacity.size()
-                + (TF_LUT_SIZE * 16) as u64
+                + TfTexture::BYTES
                 + (MAX_LIGHTS * size_of::<GpuLight>()) as u64
                 + size_of::<SceneUniforms>() as u64,
             ..TechniqueStats::default()

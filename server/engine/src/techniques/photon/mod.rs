@@ -52,8 +52,8 @@ use crate::techniques::photon::gpu::{
     dispatch_groups, dispatch_linear,
 };
 use crate::tf::{
-    TF_LUT_SIZE, bake, collision_query_historygram, opacity_query_historygram,
-    opacity_rise_historygram, query_historygram,
+    bake, collision_query_historygram, opacity_query_historygram, opacity_rise_historygram,
+    query_historygram,
 };
 use crate::{Change, Engine, EngineError, GpuVolume, Scene};
 pub use census::{Census, WorkBound};
@@ -781,10 +781,10 @@ impl PhotonBudget {
         // (`pixel_mark` in photon/common.wgsl).
         let counter_bytes =
             (COUNTER_WORDS as u64 + (8 * cells).div_ceil(32) + pixels.div_ceil(32)) * 4;
-        let small = (TF_LUT_SIZE * 16
-            + size_of::<SceneUniforms>()
-            + size_of::<PhotonUniforms>()
-            + 8 * size_of::<PhotonEmitter>()) as u64;
+        let small = TfTexture::BYTES
+            + (size_of::<SceneUniforms>()
+                + size_of::<PhotonUniforms>()
+                + 8 * size_of::<PhotonEmitter>()) as u64;
         let total = counter_bytes
             + chunk_bytes
             + record_bytes
