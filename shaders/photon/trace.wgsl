@@ -124,19 +124,50 @@ fn store_record(index: u32, record: PhotonRecord) {
         let old = records[index];
         if (!same_record(old, record)) {
             atomicAdd(&counters[COUNTER_CHANGED], 1u);
-            if (old.cell != CELL_NONE && record.cell != CELL_NONE && same_place(old, record)) {
-                append_change(index, record, CHANGE_REPLACE, old.power);
-            } else {
-                if (old.cell != CELL_NONE) {
-                    append_change(index, old, CHANGE_SUBTRACT, vec3<f32>(0.0));
+            let had = old.cell != CELL_NONE;
+            let has = record.cell != CELL_NONE;
+            let replace = had && has && same_place(old, record);
+            // One entry for a replaced record, else one per version that holds a photon: the
+            // old one's first. A loop with one call site, not a call per case: llvmpipe runs
+            // every branch's code for every SIMD batch, masked, and a loop only as often as
+            // its busiest lane needs.
+            let entries = select(u32(had) + u32(has), 1u, replace);
+            for (var e = 0u; e < entries; e++) {
+                var r = record;
+                var kind = CHANGE_ADD;
+                var old_power = vec3<f32>(0.0);
+                if (replace) {
+                    kind = CHANGE_REPLACE;
+                    old_power = old.power;
+                } else if (e == 0u && had) {
+                    r = old;
+                    kind = CHANGE_SUBTRACT;
                 }
-                if (record.cell != CELL_NONE) {
-                    append_change(index, record, CHANGE_ADD, vec3<f32>(0.0));
-                }
+                append_change(index, r, kind, old_power);
             }
         }
     }
     records[index] = record;
+}
+
+// MODE_UPDATE, the walk: gives record `index` (r, as loaded, which holds a photon) a new power,
+// a CHANGE_REPLACE where it differs. Writes only the power: llvmpipe loads and stores a storage
+// buffer one lane at a time, each word behind its own loop over the SIMD batch's lanes.
+fn store_power(index: u32, r: PhotonRecord, power: vec3<f32>) {
+    if (any(bitcast<vec3<u32>>(power) != bitcast<vec3<u32>>(r.power))) {
+        atomicAdd(&counters[COUNTER_CHANGED], 1u);
+        append_change(index, PhotonRecord(r.position, r.cell, power, r.hist_lo, r.direction, r.hist_hi), CHANGE_REPLACE, r.power);
+        records[index].power = power;
+    }
+}
+
+// MODE_UPDATE, past the new end of a path: empties record `index`, which held a photon of the
+// old path (a CHANGE_SUBTRACT of its old version).
+fn clear_record(index: u32) {
+    let old = records[index];
+    atomicAdd(&counters[COUNTER_CHANGED], 1u);
+    append_change(index, old, CHANGE_SUBTRACT, vec3<f32>(0.0));
+    records[index] = empty_record();
 }
 
 fn uniform_sphere(u1: f32, u2: f32) -> vec3<f32> {
@@ -414,7 +445,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
                     power_before = emit(&rng).power;
                 }
                 let power = roulette_carry(power_before, u32(j)) * classify(data_at(r.position)).rgb;
-                store_record(slot, PhotonRecord(r.position, r.cell, power, r.hist_lo, r.direction, r.hist_hi));
+                store_power(slot, r, power);
                 power_before = power;
                 j += 1;
                 // The trace goes on after a record only while its power is not all zero.
@@ -599,7 +630,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     } else {
         var tail = slot_cursor(p, head, count);
         for (var r = count; r < old_count; r++) {
-            store_record(cursor_slot(p, head, &tail), empty_record());
+            clear_record(cursor_slot(p, head, &tail));
         }
     }
     paths[p] = PhotonPath(count, hist.x, hist.y, collisions.x, collisions.y, head, 0u, 0u);
