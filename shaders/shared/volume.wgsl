@@ -55,9 +55,9 @@ fn tf_entry(i: u32) -> vec4<f32> {
     return textureLoad(tf_lut, vec2<u32>(i, 0u), 0);
 }
 
-// classify(v).a, the same bits (mix works per component).
+// The opacity alone, for the marches that need no albedo. Since the LUT became a texture a
+// texel is loaded whole, so this is classify(v).a (llvmpipe keeps each component in a vector
+// of its own, and the unused ones' interpolation is dropped as dead code).
 fn classify_opacity(v: f32) -> f32 {
-    let x = clamp(v, 0.0, 1.0) * f32(TF_LUT_SIZE - 1u);
-    let i = min(u32(x), TF_LUT_SIZE - 2u);
-    return mix(tf_entry(i).a, tf_entry(i + 1u).a, x - f32(i));
+    return classify(v).a;
 }
