@@ -179,29 +179,33 @@ fn change_pixels(p: vec3<f32>) -> ChangePixels {
 }
 
 // The pixels of a change's box whose rays can pass within reach of it, row by row: the rays
-// within sqrt(reach2) of p form a cone from the eye, which meets the image plane in an
-// ellipse; each row of pixel centres crosses it in one span. Visiting the spans instead of
-// the whole box matters on llvmpipe: a pixel's work runs masked for all lanes of a SIMD batch
-// where any lane's ray passes near, and about 70% of a box's pixels pass too far (the
-// projection of the photon's cube, rounded outwards, for a ball a pixel or two across).
+// within `reach` of p form a cone from the eye, which meets the image plane in an ellipse;
+// each row of pixel centres crosses it in one span. `reach` is the radius and 1% besides,
+// plus 1e-5 of p's distance from the eye: a ray whose rounded sample lies within the radius
+// passes far nearer p than that (ball_reach2's larger margin is for the difference of squares
+// that ray_near_change rounds). Visiting the spans instead of the whole box matters on
+// llvmpipe: a pixel's work runs masked for all lanes of a SIMD batch where any lane's ray
+// passes near, and about 70% of a box's pixels pass too far (the projection of the photon's
+// cube, rounded outwards, for a ball a pixel or two across).
 // In camera coordinates (right, up, forward), with p − eye = (X, Y, Z), the pixel's ray
 // direction d = (u, v, 1) and its offsets δu = u − X/Z, δv = v − Y/Z from p's projection, the
 // squared distance of p from the ray is Z² (δu² + δv² + (u₀δv − v₀δu)²) / |d|²: small terms
-// only, so the span is found to a rounding far below reach2's margin (1% of the radius), and
-// it is widened by a few hundredths of a pixel besides. Each visited pixel still takes the
-// exact tests (ray_near_change, then each sample's distance).
+// only, so the span is found to a rounding far below reach's margin, and it is widened by a
+// few hundredths of a pixel besides. Each visited pixel still takes the exact tests
+// (ray_near_change, then each sample's distance).
 struct ChangeCone {
     // p's projection (u₀, v₀) on the image plane at distance 1.
     centre: vec2<f32>,
-    // reach2 / Z².
+    // reach² / Z².
     q: f32,
     // False where the ball reaches near the eye's plane: every pixel of the box's rows.
     narrow: bool,
 }
 
-fn change_cone(e: vec3<f32>, reach2: f32) -> ChangeCone {
+fn change_cone(e: vec3<f32>, e2: f32) -> ChangeCone {
     let z = dot(e, scene.forward);
-    let q = reach2 / max(z * z, 1e-30);
+    let reach = 1.01 * photon.radius + 1e-5 * sqrt(e2);
+    let q = reach * reach / max(z * z, 1e-30);
     let narrow = z > 0.0 && q < 0.25;
     return ChangeCone(vec2<f32>(dot(e, scene.right), dot(e, scene.up)) / z, q, narrow);
 }
@@ -369,7 +373,7 @@ fn scatter_touch(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
     let reach2 = ball_reach2(e2);
     let kernel = pass_kernel(change.pass_index);
     let lead = sum_lead();
-    let cone = change_cone(e, reach2);
+    let cone = change_cone(e, e2);
     var walk = pixel_walk(box);
     loop {
         if (!next_pixel(&walk, cone, box)) {
@@ -435,7 +439,7 @@ fn scatter_changes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let reach2 = ball_reach2(e2);
     var current = SLOT_NONE;
     var sum = FixedSum(vec3<u32>(0u), vec3<u32>(0u));
-    let cone = change_cone(e, reach2);
+    let cone = change_cone(e, e2);
     var walk = pixel_walk(box);
     loop {
         if (!next_pixel(&walk, cone, box)) {
@@ -525,7 +529,7 @@ fn scatter_sums(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
     let e2 = dot(e, e);
     let reach2 = ball_reach2(e2);
     let lead = sum_lead();
-    let cone = change_cone(e, reach2);
+    let cone = change_cone(e, e2);
     var walk = pixel_walk(box);
     loop {
         if (!next_pixel(&walk, cone, box)) {
