@@ -241,35 +241,50 @@ fn cone_row(cone: ChangeCone, py: i32, box: ChangePixels) -> vec2<i32> {
     return vec2<i32>(first, last);
 }
 
-// A walk over the pixels of a change's row spans (next_pixel), row by row.
+// A change's visit of its pixels: its box (change_pixels, which also decides whether it fits
+// the loop budget), its offset e = p − eye (e2 = |e|²), the reach ray_near_change tests, its cone,
+// and the walk over the cone's row spans (next_pixel), row by row.
 struct PixelWalk {
+    box: ChangePixels,
+    cone: ChangeCone,
+    e: vec3<f32>,
+    e2: f32,
+    reach2: f32,
     x: i32,
     y: i32,
     row_last: i32,
 }
 
-fn pixel_walk(box: ChangePixels) -> PixelWalk {
-    return PixelWalk(0, box.first.y - 1, -1);
+fn pixel_walk(p: vec3<f32>) -> PixelWalk {
+    let box = change_pixels(p);
+    let e = p - scene.eye;
+    let e2 = dot(e, e);
+    return PixelWalk(box, change_cone(e, e2), e, e2, ball_reach2(e2), 0, box.first.y - 1, -1);
 }
 
 // Moves to the next pixel of the spans; false past the last. One loop visits them all, so a
 // SIMD batch iterates as often as its lane with the most pixels, not its widest span times its
 // most rows.
-fn next_pixel(walk: ptr<function, PixelWalk>, cone: ChangeCone, box: ChangePixels) -> bool {
+fn next_pixel(walk: ptr<function, PixelWalk>) -> bool {
     (*walk).x += 1;
     loop {
         if ((*walk).x <= (*walk).row_last) {
             return true;
         }
         (*walk).y += 1;
-        if ((*walk).y > box.last.y) {
+        if ((*walk).y > (*walk).box.last.y) {
             return false;
         }
-        let span = cone_row(cone, (*walk).y, box);
+        let span = cone_row((*walk).cone, (*walk).y, (*walk).box);
         (*walk).x = span.x;
         (*walk).row_last = span.y;
     }
     return false;
+}
+
+// The current pixel's ray as the change sees it.
+fn walk_ray(walk: PixelWalk) -> RayNearChange {
+    return ray_near_change(walk_pixel(walk), walk.e, walk.e2, walk.reach2);
 }
 
 fn walk_pixel(walk: PixelWalk) -> u32 {
@@ -363,47 +378,40 @@ fn scatter_touch(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
         return;
     }
     let change = changes[index];
-    let p = change.position;
-    let box = change_pixels(p);
-    if (!box.fits) {
+    var walk = pixel_walk(change.position);
+    if (!walk.box.fits) {
         return;
     }
-    let e = p - scene.eye;
-    let e2 = dot(e, e);
-    let reach2 = ball_reach2(e2);
+    let reach2 = walk.reach2;
     let kernel = pass_kernel(change.pass_index);
     let lead = sum_lead();
-    let cone = change_cone(e, e2);
-    var walk = pixel_walk(box);
     loop {
-        if (!next_pixel(&walk, cone, box)) {
+        if (!next_pixel(&walk)) {
             break;
         }
-        {
-            let pixel = walk_pixel(walk);
-            let ray = ray_near_change(pixel, e, e2, reach2);
-            if (!ray.near) {
-                continue;
-            }
-            let hit = ray.hit;
-            if (TOUCH_SUMS) {
-                // The samples the sums visit give the segments exactly: those with a lattice
-                // sample within the radius, the only ones whose terms the change alters.
-                let within = add_to_sums(pixel, change, change_ray(pixel, change, ray, reach2), kernel, lead);
-                if (within.x <= within.y) {
-                    touch_segments(pixel, segment_of(hit, within.x), segment_of(hit, within.y));
-                }
-                continue;
-            }
-            // A step's margin at each end for the rounding of the samples' positions.
-            let half = sqrt(reach2 - ray.perp2) + photon.gather_step;
-            let ta = max(ray.tc - half, hit.x);
-            let tb = min(ray.tc + half, hit.y);
-            if (ta >= tb) {
-                continue;
-            }
-            touch_segments(pixel, segment_of(hit, ta), segment_of(hit, tb));
+        let pixel = walk_pixel(walk);
+        let ray = walk_ray(walk);
+        if (!ray.near) {
+            continue;
         }
+        let hit = ray.hit;
+        if (TOUCH_SUMS) {
+            // The samples the sums visit give the segments exactly: those with a lattice
+            // sample within the radius, the only ones whose terms the change alters.
+            let within = add_to_sums(pixel, change, change_ray(pixel, change, ray, reach2), kernel, lead);
+            if (within.x <= within.y) {
+                touch_segments(pixel, segment_of(hit, within.x), segment_of(hit, within.y));
+            }
+            continue;
+        }
+        // A step's margin at each end for the rounding of the samples' positions.
+        let half = sqrt(reach2 - ray.perp2) + photon.gather_step;
+        let ta = max(ray.tc - half, hit.x);
+        let tb = min(ray.tc + half, hit.y);
+        if (ta >= tb) {
+            continue;
+        }
+        touch_segments(pixel, segment_of(hit, ta), segment_of(hit, tb));
     }
 }
 
@@ -430,75 +438,68 @@ fn scatter_changes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let p = change.position;
     let kernel = pass_kernel(change.pass_index);
     let r2 = kernel.x;
-    let box = change_pixels(p);
-    if (!box.fits) {
+    var walk = pixel_walk(p);
+    if (!walk.box.fits) {
         return;
     }
-    let e = p - scene.eye;
-    let e2 = dot(e, e);
-    let reach2 = ball_reach2(e2);
     var current = SLOT_NONE;
     var sum = FixedSum(vec3<u32>(0u), vec3<u32>(0u));
-    let cone = change_cone(e, e2);
-    var walk = pixel_walk(box);
     loop {
-        if (!next_pixel(&walk, cone, box)) {
+        if (!next_pixel(&walk)) {
             break;
         }
-        {
-            let pixel = walk_pixel(walk);
-            let ray = change_ray(pixel, change, ray_near_change(pixel, e, e2, reach2), reach2);
-            let hit = ray.near.hit;
-            let jitter = ray.jitter;
-            // The segment of the samples being visited: its slot, first lattice index and
-            // samples marched (SLOT_NONE: none yet).
-            var segment = SLOT_NONE;
-            var slot = SLOT_NONE;
-            var k0 = 0.0;
-            var marched = 0u;
-            for (var k = ray.k_first; k <= ray.k_last; k += 1.0) {
-                let sample = change_sample(ray, k, p);
-                let t = sample.x;
-                let d2 = sample.y;
-                if (t < hit.x) {
-                    continue;
+        let pixel = walk_pixel(walk);
+        let ray = change_ray(pixel, change, walk_ray(walk), walk.reach2);
+        let hit = ray.near.hit;
+        let jitter = ray.jitter;
+        // The segment of the samples being visited: its slot, first lattice index and
+        // samples marched (SLOT_NONE: none yet).
+        var segment = SLOT_NONE;
+        var slot = SLOT_NONE;
+        var k0 = 0.0;
+        var marched = 0u;
+        for (var k = ray.k_first; k <= ray.k_last; k += 1.0) {
+            let sample = change_sample(ray, k, p);
+            let t = sample.x;
+            let d2 = sample.y;
+            if (t < hit.x) {
+                continue;
+            }
+            if (t >= hit.y) {
+                break;
+            }
+            if (d2 >= r2) {
+                continue;
+            }
+            let s = segment_of(hit, t);
+            if (s != segment) {
+                segment = s;
+                slot = segment_slot(pixel * photon.segments + s);
+                if (slot != SLOT_NONE) {
+                    k0 = first_lattice_index(hit, segment_bounds(hit, s).x, jitter);
+                    marched = atomicLoad(&scatter[slot_word(slot, 1u)]);
                 }
-                if (t >= hit.y) {
-                    break;
-                }
-                if (d2 >= r2) {
-                    continue;
-                }
-                let s = segment_of(hit, t);
-                if (s != segment) {
-                    segment = s;
-                    slot = segment_slot(pixel * photon.segments + s);
-                    if (slot != SLOT_NONE) {
-                        k0 = first_lattice_index(hit, segment_bounds(hit, s).x, jitter);
-                        marched = atomicLoad(&scatter[slot_word(slot, 1u)]);
-                    }
-                }
-                // SLOT_NONE: a fresh segment (gathered whole), one gathered from the change
-                // grid, or one no change reaches.
-                if (slot == SLOT_NONE || k < k0 || u32(k - k0) >= marched) {
-                    continue;
-                }
-                let j = u32(k - k0);
-                let weight = bitcast<f32>(atomicLoad(&scatter[weight_word(slot, j)]));
-                if (weight < 0.0) {
-                    continue;
-                }
-                if (slot != current) {
-                    add_to_slot(current, sum);
-                    current = slot;
-                    sum = FixedSum(vec3<u32>(0u), vec3<u32>(0u));
-                }
-                // The gather's term (photon/gather.wgsl), factor for factor.
-                let factor = weight * ray.phase * (1.0 - d2 / r2) * kernel.y;
-                sum = accumulate(sum, change.power * factor, change.kind == CHANGE_SUBTRACT);
-                if (change.kind == CHANGE_REPLACE) {
-                    sum = accumulate(sum, change.old_power * factor, true);
-                }
+            }
+            // SLOT_NONE: a fresh segment (gathered whole), one gathered from the change
+            // grid, or one no change reaches.
+            if (slot == SLOT_NONE || k < k0 || u32(k - k0) >= marched) {
+                continue;
+            }
+            let j = u32(k - k0);
+            let weight = bitcast<f32>(atomicLoad(&scatter[weight_word(slot, j)]));
+            if (weight < 0.0) {
+                continue;
+            }
+            if (slot != current) {
+                add_to_slot(current, sum);
+                current = slot;
+                sum = FixedSum(vec3<u32>(0u), vec3<u32>(0u));
+            }
+            // The gather's term (photon/gather.wgsl), factor for factor.
+            let factor = weight * ray.phase * (1.0 - d2 / r2) * kernel.y;
+            sum = accumulate(sum, change.power * factor, change.kind == CHANGE_SUBTRACT);
+            if (change.kind == CHANGE_REPLACE) {
+                sum = accumulate(sum, change.old_power * factor, true);
             }
         }
     }
@@ -519,27 +520,19 @@ fn scatter_sums(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
         return;
     }
     let change = changes[index];
-    let p = change.position;
     let kernel = pass_kernel(change.pass_index);
-    let box = change_pixels(p);
-    if (!box.fits) {
+    var walk = pixel_walk(change.position);
+    if (!walk.box.fits) {
         return;
     }
-    let e = p - scene.eye;
-    let e2 = dot(e, e);
-    let reach2 = ball_reach2(e2);
     let lead = sum_lead();
-    let cone = change_cone(e, e2);
-    var walk = pixel_walk(box);
     loop {
-        if (!next_pixel(&walk, cone, box)) {
+        if (!next_pixel(&walk)) {
             break;
         }
-        {
-            let pixel = walk_pixel(walk);
-            let near = ray_near_change(pixel, e, e2, reach2);
-            add_to_sums(pixel, change, change_ray(pixel, change, near, reach2), kernel, lead);
-        }
+        let pixel = walk_pixel(walk);
+        let near = walk_ray(walk);
+        add_to_sums(pixel, change, change_ray(pixel, change, near, walk.reach2), kernel, lead);
     }
 }
 
