@@ -12,11 +12,10 @@
 //   before the segment or past its transmittance cut-off);
 // - `scatter_changes` runs one invocation per change-list entry: the pixels whose rays can pass
 //   within the radius (row spans of the photon's cone within the projection of its cube:
-//   ChangeCone), on each ray the lattice samples
-//   within the radius, and for each the term the gather would form (the same expressions on
-//   the same bits), summed per segment in 64-bit fixed point and added to the slot's sum with
-//   two 32-bit atomics and a carry. Integer sums do not depend on order, so segment + sum is bit
-//   for bit what a gather gives;
+//   ChangeCone), on each ray the lattice samples within the radius, and for each the term the
+//   gather would form (the same expressions on the same bits), summed per segment in 64-bit
+//   fixed point and added to the slot's sum with two 32-bit atomics and a carry. Integer sums
+//   do not depend on order, so segment + sum is bit for bit what a gather gives;
 // - `scatter_apply` adds each slot's sum to its segment.
 //
 // A change whose pixels would take more loop iterations than one invocation may run (llvmpipe
