@@ -144,6 +144,14 @@ struct PhotonRecord {
     hist_hi: u32,
 }
 
+// Per record slot, where its flight stood just before the collision point: the flight's t
+// there and the draws its Rng had taken (Rng.dim). An update resumes a flight whose collision's
+// opacity fell from there, where it would otherwise replay every tentative point before it.
+struct RecordResume {
+    t: f32,
+    draws: u32,
+}
+
 // Per path: stored interactions, the historygram of the whole path (including the flight
 // that left the volume) and that of its collisions' data values alone, so that a path the
 // edit affects is found by two tests (trace_mark), and the first chunk of slots past its
@@ -321,6 +329,8 @@ const SPATIAL_CELLS: u32 = 2u;
 // update. llvmpipe reads a storage buffer's words lane by lane behind bounds checks, a
 // storage texture's in one gather.
 @group(0) @binding(19) var path_queries: texture_storage_2d<r32uint, read_write>;
+// Per record slot, its RecordResume (written with the record by photon/trace.wgsl).
+@group(0) @binding(20) var<storage, read_write> record_resumes: array<RecordResume>;
 const PATH_QUERY_ROW: u32 = 4096u;
 
 fn path_query_texel(p: u32, w: u32) -> vec2<i32> {

@@ -26,7 +26,7 @@
 
 // `main` is compiled twice: for full traces and for updates (TRACE_UPDATE), each without the
 // other's code. llvmpipe runs every branch of a kernel for every SIMD batch, masked, so with
-// the mode a uniform the full trace paid for the update's walk, replay and change list, and
+// the mode a uniform the full trace paid for the update's walk, resume and change list, and
 // the update for the census.
 override TRACE_UPDATE: bool = false;
 
@@ -396,9 +396,10 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     loop {
         var start = -1;
         // Where an update resumes the first moved flight: at its old collision, whose opacity
-        // fell (the tentative points before it are replayed without reading the volume), with
-        // the path's historygram up to there (the old record's) and the old record's power.
+        // fell (from the record's RecordResume, just before that point), with the path's
+        // historygram up to there (the old record's) and the old record's power.
         var resume = false;
+        var resume_from = RecordResume(0.0, 0u);
         var resume_position = vec3<f32>(0.0);
         var resume_hist = vec2<u32>(0u);
         var resume_power = vec3<f32>(0.0);
@@ -428,6 +429,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
                     // one before the collision stays rejected (tracking_opacity cannot rise
                     // where the LUT fell): the flight resumes at the collision (`resume`).
                     resume = true;
+                    resume_from = record_resumes[slot];
                     resume_position = r.position;
                     resume_hist = vec2<u32>(r.hist_lo, r.hist_hi);
                     resume_power = r.power;
@@ -514,35 +516,23 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
             var collided = false;
             var albedo = vec3<f32>(0.0);
             var steps = 0u;
-            // Only the first flight an update tracks resumes: the same draws and the same t
-            // as the flight that stored the old record, up to its position bit for bit,
-            // replayed without reading the volume in a loop of their own (in the tracking
-            // loop, llvmpipe would sample the volume at every replayed point for the lanes
-            // that track), then rewound by one point for the tracking loop to decide there.
-            // Should an earlier point lie there too (a zero step), it was rejected at the same
-            // value and is rejected again.
+            // Where the collision's flight stood before its point (the record's resume).
+            var resume_at = RecordResume(0.0, 0u);
+            // Only the first flight an update tracks resumes: at the t and with the draws the
+            // flight that stored the old record had just before its collision point, so the
+            // tracking loop decides that point again and goes on as a full trace would, with
+            // the path's historygram up to there. The points before it were rejected and stay
+            // rejected (their opacity cannot have risen), so they are not replayed.
             let resumed = resume;
             if (resume) {
                 resume = false;
-                loop {
-                    let before = rng;
-                    let t_before = t;
-                    t += -log(1.0 - rng_next(&rng)) / photon.majorant;
-                    if (t >= hit.y) {
-                        break;
-                    }
-                    let x = origin + dir * t;
-                    rng_next(&rng);
-                    if (all(bitcast<vec3<u32>>(x) == bitcast<vec3<u32>>(resume_position))) {
-                        rng = before;
-                        t = t_before;
-                        hist = resume_hist;
-                        break;
-                    }
-                }
+                rng.dim = resume_from.draws;
+                t = resume_from.t;
+                hist = resume_hist;
             }
             loop {
                 steps += 1u;
+                resume_at = RecordResume(t, rng.dim);
                 t += -log(1.0 - rng_next(&rng)) / photon.majorant;
                 if (t >= hit.y) {
                     break;
@@ -599,6 +589,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
             direction = dir;
             power *= albedo;
             store_record(slot, PhotonRecord(position, grid_index(grid_cell3(position)), power, hist.x, direction, hist.y));
+            record_resumes[slot] = resume_at;
             k += 1u;
             count = k;
             // Collided where it did (the same draws; no earlier point accepted now): the

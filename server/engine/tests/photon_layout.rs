@@ -10,7 +10,7 @@ use voxlight_engine::techniques::photon::gpu::{
     COUNTER_RETRACED, COUNTER_SCATTER, COUNTER_SCATTER_OVERFLOW, COUNTER_SEGMENTS, COUNTER_SPATIAL,
     COUNTER_TOUCH, COUNTER_WORDS, GRID_CHANGES, GRID_RECORDS, GatherState, MODE_FULL, MODE_UPDATE,
     PATH_QUERY_ROW, PhotonChange, PhotonEmitter, PhotonPath, PhotonRecord, PhotonUniforms,
-    SAMPLE_WORDS, SLOT_WORDS, SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
+    RecordResume, SAMPLE_WORDS, SLOT_WORDS, SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
 };
 
 fn assert_layout(module: &naga::Module, name: &str, size: usize, fields: &[(&str, usize)]) {
@@ -68,6 +68,12 @@ fn photon_structs_match_wgsl() {
             "PhotonRecord",
             size_of::<PhotonRecord>(),
             fields!(PhotonRecord: position, cell, power, hist_lo, direction, hist_hi),
+        );
+        assert_layout(
+            &module,
+            "RecordResume",
+            size_of::<RecordResume>(),
+            fields!(RecordResume: t, draws),
         );
         assert_layout(
             &module,

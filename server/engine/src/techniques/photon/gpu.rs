@@ -81,6 +81,15 @@ pub struct PhotonRecord {
     pub hist_hi: u32,
 }
 
+/// Matches `RecordResume`: where a record's flight stood just before its collision point (t,
+/// and the draws its random stream had taken), one per record slot.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
+pub struct RecordResume {
+    pub t: f32,
+    pub draws: u32,
+}
+
 /// Matches `PhotonPath`.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable, PartialEq)]
@@ -195,15 +204,15 @@ pub const SPATIAL_CELLS: u32 = 2;
 /// Workgroup width of the 1D photon kernels.
 pub const WORKGROUP: u32 = 64;
 
-/// What bindings 0–19 hold (every pass of shaders/photon/ declares them all, in common.wgsl):
-/// scene, volume, TF, `PhotonUniforms`, the emitters, then the technique's buffers, then the
-/// paths' query words (`path_queries`).
-pub const BINDINGS: [Binding; 20] = {
+/// What bindings 0–20 hold (every pass of shaders/photon/ declares them all, in common.wgsl):
+/// scene, volume, TF, `PhotonUniforms`, the emitters, then the technique's buffers, the paths'
+/// query words (`path_queries`), the records' resumes.
+pub const BINDINGS: [Binding; 21] = {
     use Binding::*;
     [
         Uniform, Volume, Lut, Uniform, Read, ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite,
         ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite, ReadWrite,
-        ReadWrite, Words,
+        ReadWrite, Words, ReadWrite,
     ]
 };
 
@@ -273,6 +282,7 @@ pub struct PhotonBindings<'a> {
     pub chunks: &'a wgpu::Buffer,
     pub sample_sums: &'a wgpu::Buffer,
     pub path_queries: &'a wgpu::TextureView,
+    pub record_resumes: &'a wgpu::Buffer,
 }
 
 impl PhotonPass {
@@ -370,6 +380,7 @@ impl PhotonPass {
             buffer(17, b.chunks),
             buffer(18, b.sample_sums),
             texture(19, b.path_queries),
+            buffer(20, b.record_resumes),
         ];
         self.layout.bind_group(gpu, "photon", &entries)
     }

@@ -48,8 +48,8 @@ use crate::techniques::photon::gpu::{
     COUNTER_TOUCH, COUNTER_WORDS, EMIT_DIRECTIONAL, EMIT_ENVIRONMENT, EMIT_POINT, GRID_CHANGES,
     GRID_RECORDS, GatherState, MODE_FULL, MODE_UPDATE, PASS_KERNEL_ENTRIES, PhotonBindings,
     PhotonChange, PhotonEmitter, PhotonPass, PhotonPath, PhotonRecord, PhotonUniforms,
-    SAMPLE_WORDS, SLOT_WORDS, SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment, WORKGROUP,
-    dispatch_groups, dispatch_linear,
+    RecordResume, SAMPLE_WORDS, SLOT_WORDS, SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
+    WORKGROUP, dispatch_groups, dispatch_linear,
 };
 use crate::tf::{
     bake, collision_query_historygram, opacity_query_historygram, opacity_rise_historygram,
@@ -602,6 +602,8 @@ pub struct PhotonBudget {
     pub grid_dims: [u32; 3],
     pub radius: f32,
     pub record_bytes: u64,
+    /// The records' resumes (`RecordResume`, one per slot).
+    pub record_resume_bytes: u64,
     pub path_bytes: u64,
     pub grid_cell_bytes: u64,
     pub grid_sorted_bytes: u64,
@@ -722,6 +724,7 @@ impl PhotonBudget {
         let chunk_bytes = passes * (layout.chunks_per_pass as u64 + 1) * 4;
         let pixels = width as u64 * height as u64;
         let record_bytes = records * size_of::<PhotonRecord>() as u64;
+        let record_resume_bytes = records * size_of::<RecordResume>() as u64;
         let path_bytes = paths * size_of::<PhotonPath>() as u64;
         let path_query_rows = (paths * gpu::PATH_QUERY_WORDS as u64)
             .div_ceil(gpu::PATH_QUERY_ROW as u64)
@@ -788,6 +791,7 @@ impl PhotonBudget {
         let total = counter_bytes
             + chunk_bytes
             + record_bytes
+            + record_resume_bytes
             + path_bytes
             + grid_cell_bytes
             + grid_sorted_bytes
@@ -809,6 +813,7 @@ impl PhotonBudget {
             grid_dims,
             radius,
             record_bytes,
+            record_resume_bytes,
             path_bytes,
             grid_cell_bytes,
             grid_sorted_bytes,
@@ -839,6 +844,7 @@ impl PhotonBudget {
             .min(limits.max_buffer_size);
         let largest = [
             self.record_bytes,
+            self.record_resume_bytes,
             self.path_bytes,
             self.grid_cell_bytes,
             self.grid_sorted_bytes,
@@ -909,6 +915,8 @@ struct PhotonBuffers {
     sample_sums: wgpu::Buffer,
     /// The paths' query words (`path_queries` in photon/common.wgsl).
     path_queries: wgpu::TextureView,
+    /// The records' resumes (`record_resumes`).
+    record_resumes: wgpu::Buffer,
 }
 
 impl PhotonBuffers {
@@ -917,7 +925,8 @@ impl PhotonBuffers {
             engine.gpu.buffer(label, size, usage)
         };
         use wgpu::BufferUsages as U;
-        let (records, grid_sorted, changes, chunks) = Self::slot_buffers(engine, budget);
+        let [records, grid_sorted, changes, chunks, record_resumes] =
+            Self::slot_buffers(engine, budget);
         Self {
             scene: buffer(
                 "photon scene",
@@ -986,18 +995,16 @@ impl PhotonBuffers {
                     label: Some("photon path queries"),
                     ..Default::default()
                 }),
+            record_resumes,
         }
     }
 
     /// The buffers whose size follows the record slots: records, the grid's sorted slots,
-    /// the change list and the chunk lists.
-    fn slot_buffers(
-        engine: &Engine,
-        budget: &PhotonBudget,
-    ) -> (wgpu::Buffer, wgpu::Buffer, wgpu::Buffer, wgpu::Buffer) {
+    /// the change list, the chunk lists and the records' resumes.
+    fn slot_buffers(engine: &Engine, budget: &PhotonBudget) -> [wgpu::Buffer; 5] {
         use wgpu::BufferUsages as U;
         let gpu = &engine.gpu;
-        (
+        [
             gpu.buffer(
                 "photon records",
                 budget.record_bytes,
@@ -1014,13 +1021,23 @@ impl PhotonBuffers {
                 budget.chunk_bytes,
                 U::STORAGE | U::COPY_SRC,
             ),
-        )
+            gpu.buffer(
+                "photon record resumes",
+                budget.record_resume_bytes,
+                U::STORAGE,
+            ),
+        ]
     }
 
     /// Replaces the buffers `slot_buffers` names with ones of `budget`'s sizes.
     fn resize_slots(&mut self, engine: &Engine, budget: &PhotonBudget) {
-        (self.records, self.grid_sorted, self.changes, self.chunks) =
-            Self::slot_buffers(engine, budget);
+        [
+            self.records,
+            self.grid_sorted,
+            self.changes,
+            self.chunks,
+            self.record_resumes,
+        ] = Self::slot_buffers(engine, budget);
     }
 
     fn bind_group(&self, engine: &Engine, volume: &GpuVolume) -> wgpu::BindGroup {
@@ -1047,6 +1064,7 @@ impl PhotonBuffers {
                 chunks: &self.chunks,
                 sample_sums: &self.sample_sums,
                 path_queries: &self.path_queries,
+                record_resumes: &self.record_resumes,
             },
         )
     }
