@@ -33,7 +33,7 @@ mod config;
 pub mod gpu;
 pub mod slots;
 
-use std::cell::Cell;
+use std::cell::{Cell, RefCell};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -216,6 +216,9 @@ struct GatherInProgress {
     /// Whether the marks passes marked every pixel whose segments this update computes, so
     /// that only those are recomposited (`composite_changed`).
     pixels_marked: bool,
+    /// Whether the composite already ran after the last segment was computed (`begin_gather`
+    /// submits it with `remarch_from_sums`).
+    composited: bool,
 }
 
 /// One part of a gather round (`GatherInProgress::part`): what `gather_part` dispatches.
@@ -246,6 +249,7 @@ impl GatherInProgress {
             listed,
             next: 0,
             pixels_marked: false,
+            composited: false,
         }
     }
 
@@ -1108,6 +1112,11 @@ pub struct Photon {
     /// Whether the records' grid is older than the records (an update that gathered no
     /// segment afresh did not need it).
     records_grid_behind: Cell<bool>,
+    /// Bumped by every submission and every write to the counters: a read of the counters
+    /// (`counters_read`) stays current while this stands.
+    epoch: Cell<u64>,
+    /// The counter words as last read, and the epoch they were read in.
+    counters_read: RefCell<Option<(u64, Vec<u32>)>>,
     last_uniforms: Cell<PhotonUniforms>,
     /// Whether the full pass being dispatched counts its work (`census`).
     census: Cell<bool>,
@@ -1175,6 +1184,8 @@ impl Photon {
             sums_by_gather: false,
             marks: Cell::new(None),
             records_grid_behind: Cell::new(false),
+            epoch: Cell::new(0),
+            counters_read: RefCell::new(None),
             last_uniforms: Cell::new(bytemuck::Zeroable::zeroed()),
             census: Cell::new(false),
             gathering: None,
@@ -1357,7 +1368,7 @@ impl Photon {
             .write_buffer(&self.buffers.uniforms, 0, bytemuck::bytes_of(&uniforms));
         let mut encoder = Self::encoder(engine, "photon grid");
         self.build_grid(&mut encoder, &engine.photon, self.record_count());
-        engine.gpu.queue.submit([encoder.finish()]);
+        self.submit(engine, encoder);
     }
 
     fn encoder(engine: &Engine, label: &str) -> wgpu::CommandEncoder {
@@ -1365,6 +1376,12 @@ impl Photon {
             .gpu
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) })
+    }
+
+    /// Submits `encoder`'s commands.
+    fn submit(&self, engine: &Engine, encoder: wgpu::CommandEncoder) {
+        self.epoch.set(self.epoch.get() + 1);
+        engine.gpu.queue.submit([encoder.finish()]);
     }
 
     /// One dispatch of `pipeline` over `count` invocations, in its own submission.
@@ -1377,11 +1394,12 @@ impl Photon {
     ) {
         let mut encoder = Self::encoder(engine, label);
         dispatch_linear(&mut encoder, label, pipeline, &self.bind_group, count);
-        engine.gpu.queue.submit([encoder.finish()]);
+        self.submit(engine, encoder);
     }
 
     /// Sets one counter word before the next submission.
     fn write_counter(&self, engine: &Engine, word: usize, value: u32) {
+        self.epoch.set(self.epoch.get() + 1);
         let offset = word as u64 * 4;
         engine
             .gpu
@@ -1557,10 +1575,11 @@ impl Photon {
             self.write_uniforms(engine, scene, query, dispatch);
             let mut encoder = Self::encoder(engine, "photon grid");
             self.build_grid(&mut encoder, &engine.photon, build.items);
-            engine.gpu.queue.submit([encoder.finish()]);
+            self.submit(engine, encoder);
         }
         let mut listed = self.counter(engine, COUNTER_LIST)?;
         let mut input = 0;
+        let mut composited = false;
         // Where every valid sum holds the changes, most listed segments need no photon: they
         // march (or recomposite) from the sums first, and the gather takes the rest.
         let summed = self.budget.sample_cache_samples > 0
@@ -1570,13 +1589,39 @@ impl Photon {
             // After the grids' uniforms, and with this update's `sums_applied`.
             self.write_uniforms(engine, scene, query, mode_only);
             self.write_counter(engine, COUNTER_LIST + 1, 0);
-            let remarch = &engine.photon.remarch_from_sums;
-            self.submit_linear(engine, "photon remarch from sums", remarch, listed);
+            let pass = &engine.photon;
+            let mut encoder = Self::encoder(engine, "photon remarch from sums");
+            let bg = &self.bind_group;
+            let remarch = &pass.remarch_from_sums;
+            dispatch_linear(
+                &mut encoder,
+                "photon remarch from sums",
+                remarch,
+                bg,
+                listed,
+            );
+            // The marked pixels' composite, in the same submission: the sums usually leave the
+            // gather nothing, and the read below then ends the update. Where they do not, the
+            // gather composites those pixels again after it (`composited` stays false).
+            if marked.is_some() {
+                let pixels = self.width * self.height;
+                let composite = &pass.composite_changed;
+                dispatch_linear(
+                    &mut encoder,
+                    "photon composite changed",
+                    composite,
+                    bg,
+                    pixels,
+                );
+            }
+            self.submit(engine, encoder);
             listed = self.counter(engine, COUNTER_LIST + 1)?;
             input = 1;
+            composited = marked.is_some() && listed == 0;
         }
         self.gathering = Some(GatherInProgress {
             pixels_marked: marked.is_some(),
+            composited,
             ..GatherInProgress::new(mode, query, listed, input)
         });
         Ok(())
@@ -1633,7 +1678,9 @@ impl Photon {
         } else {
             ("photon composite", &engine.photon.composite)
         };
-        self.submit_linear(engine, label, composite, pixels);
+        if !gathering.composited {
+            self.submit_linear(engine, label, composite, pixels);
+        }
         self.shown = self.passes;
         Ok(true)
     }
@@ -1670,7 +1717,7 @@ impl Photon {
         dispatch_linear(&mut encoder, "photon scatter weights", weights, bg, slots);
         let terms = &pass.scatter_changes;
         dispatch_linear(&mut encoder, "photon scatter changes", terms, bg, changes);
-        engine.gpu.queue.submit([encoder.finish()]);
+        self.submit(engine, encoder);
         let overflow = self.counter(engine, COUNTER_SCATTER_OVERFLOW)? > 0;
         let (label, pipeline) = if overflow {
             ("photon scatter fallback", &pass.scatter_fallback)
@@ -1780,16 +1827,25 @@ impl Photon {
         self.write_uniforms(engine, scene, query, dispatch);
     }
 
-    /// The counter words (not the dirty bits; blocks on the GPU).
+    /// The counter words (not the dirty bits). Blocks on the GPU, unless nothing was submitted
+    /// or written to the counters since the last read (`epoch`).
     fn counter_words(&self, engine: &Engine) -> Result<Vec<u32>, EngineError> {
+        let epoch = self.epoch.get();
+        if let Some((read_in, words)) = self.counters_read.borrow().as_ref()
+            && *read_in == epoch
+        {
+            return Ok(words.clone());
+        }
         let bytes =
             engine
                 .gpu
                 .read_buffer_range(&self.buffers.counters, 0, (COUNTER_WORDS * 4) as u64)?;
-        Ok(bytes
+        let words: Vec<u32> = bytes
             .chunks_exact(4)
             .map(bytemuck::pod_read_unaligned::<u32>)
-            .collect())
+            .collect();
+        *self.counters_read.borrow_mut() = Some((epoch, words.clone()));
+        Ok(words)
     }
 
     /// Lists the paths whose historygram meets the query (`trace_mark`) and returns how many
@@ -1837,12 +1893,9 @@ impl Photon {
         );
     }
 
-    /// One counter word (blocks on the GPU).
+    /// One counter word (`counter_words`).
     fn counter(&self, engine: &Engine, word: usize) -> Result<u32, EngineError> {
-        let bytes = engine
-            .gpu
-            .read_buffer_range(&self.buffers.counters, word as u64 * 4, 4)?;
-        Ok(bytemuck::pod_read_unaligned::<u32>(&bytes[..4]))
+        Ok(self.counter_words(engine)?[word])
     }
 
     /// Loop iterations one gather invocation may run per round, unbounded (one round) where
@@ -2067,12 +2120,12 @@ impl Photon {
                 self.budget.scatter_bytes
             )));
         }
-        let clear = |engine: &Engine, scatter: &wgpu::Buffer| {
+        let clear = |photon: &Self| {
             let mut encoder = Self::encoder(engine, "photon census clear");
-            encoder.clear_buffer(scatter, 0, Some(bytes));
-            engine.gpu.queue.submit([encoder.finish()]);
+            encoder.clear_buffer(&photon.buffers.scatter, 0, Some(bytes));
+            photon.submit(engine, encoder);
         };
-        clear(engine, &self.buffers.scatter);
+        clear(self);
         self.census.set(true);
         let done = self.full_pass(engine, scene, passes, false);
         self.census.set(false);
@@ -2084,7 +2137,7 @@ impl Photon {
         )?);
         // Between updates the scatter's per-segment words read SEGMENT_UNTOUCHED (0); a
         // leftover count of 1 would pass for a mark (more work for the next update, same bits).
-        clear(engine, &self.buffers.scatter);
+        clear(self);
         let (map, paths) = self.read_map(engine)?;
         let slots = slots as usize;
         let per_record = |offset: usize| -> Vec<u32> {
@@ -2147,6 +2200,7 @@ impl Photon {
             // gathered again; the full recompute is that work without the checks.
             return self.update_by_recompute(engine, scene);
         }
+        self.epoch.set(self.epoch.get() + 1);
         engine.gpu.queue.write_buffer(
             &self.buffers.counters,
             0,
