@@ -155,7 +155,7 @@ fn gather_mark_stale(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num
             atomicAdd(&counters[COUNTER_CUT], 1u);
         }
         atomicAdd(&counters[COUNTER_SEGMENTS], 1u);
-        list_from_start(id, first_lattice_index(hit, segment_bounds(hit, s).x, jitter));
+        list_from_start(id);
         listed = true;
     }
     if (listed) {
@@ -194,7 +194,7 @@ fn recomposite_touched(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     if (recomposite_from_sums(id, hit, bounds, jitter, 0xffffffffu, &used)) {
         return;
     }
-    list_from_start(id, first_lattice_index(hit, bounds.x, jitter));
+    list_from_start(id);
 }
 
 // A segment's gather from its first lattice index k: nothing summed, full transmittance.
@@ -202,10 +202,14 @@ fn gather_start(k: f32) -> GatherState {
     return GatherState(vec3<u32>(0u), k, vec3<u32>(0u), 1.0, 0u, 0u, NEXT_SAMPLE, 0u);
 }
 
-// Lists segment id for the gather afresh, from its first lattice index k.
-fn list_from_start(id: u32, k: f32) {
-    gather_state[id] = gather_start(k);
-    gather_list[atomicAdd(&counters[COUNTER_LIST], 1u)] = id;
+// Lists segment id for the gather afresh, from its first lattice index (FRESH_SEGMENT).
+fn list_from_start(id: u32) {
+    gather_list[atomicAdd(&counters[COUNTER_LIST], 1u)] = id | FRESH_SEGMENT;
+}
+
+// The segment a gather_list entry names (without its flags).
+fn entry_segment(entry: u32) -> u32 {
+    return entry & ~(DELTA_SEGMENT | FRESH_SEGMENT);
 }
 
 // Lists segment id for the gather if it must be computed, as a full gather or an update
@@ -288,12 +292,12 @@ fn mark_segment(id: u32) {
 // NEXT_SAMPLE = take the next lattice sample.
 const NEXT_SAMPLE: u32 = 28u;
 
-// Keeps the segment's place for the next round and lists it (the list entry, flag and all)
-// there.
+// Keeps the segment's place for the next round and lists it there (its entry's DELTA_SEGMENT
+// flag kept; no longer FRESH_SEGMENT, its state now being in gather_state).
 fn defer_segment(entry: u32, st: GatherState, segment_count: u32) {
-    gather_state[entry & ~DELTA_SEGMENT] = st;
+    gather_state[entry_segment(entry)] = st;
     let next = 1u - photon.round_input;
-    gather_list[next * segment_count + atomicAdd(&counters[COUNTER_LIST + next], 1u)] = entry;
+    gather_list[next * segment_count + atomicAdd(&counters[COUNTER_LIST + next], 1u)] = entry & ~FRESH_SEGMENT;
 }
 
 // GatherState.cell past the 27 neighbours: the segment's samples are done, and the march goes
@@ -377,13 +381,13 @@ fn remarch_from_sums(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num
         return;
     }
     let entry = gather_list[slot];
-    let id = entry & ~DELTA_SEGMENT;
+    let id = entry_segment(entry);
     let pixel = id / photon.segments;
     let dir = pixel_ray(pixel);
     let hit = intersect_box(scene.eye, dir, scene.box_min, scene.box_max);
     let bounds = segment_bounds(hit, id % photon.segments);
     let jitter = pixel_jitter(pixel);
-    if (id != entry) {
+    if ((entry & DELTA_SEGMENT) != 0u) {
         var used = 0u;
         if (recomposite_from_sums(id, hit, bounds, jitter, 0xffffffffu, &used)) {
             return;
@@ -392,7 +396,7 @@ fn remarch_from_sums(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num
         return;
     }
     let segment_count = scene.width * scene.height * photon.segments;
-    gather_list[segment_count + atomicAdd(&counters[COUNTER_LIST + 1u], 1u)] = id;
+    gather_list[segment_count + atomicAdd(&counters[COUNTER_LIST + 1u], 1u)] = id | (entry & FRESH_SEGMENT);
 }
 
 // With per-sample sums whose every valid one holds the update's changes: the gather of segment
@@ -451,12 +455,13 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
         return;
     }
     let entry = gather_list[photon.round_input * segment_count + slot];
-    let id = entry & ~DELTA_SEGMENT;
+    let id = entry_segment(entry);
+    let delta_entry = (entry & DELTA_SEGMENT) != 0u;
     let cached = SAMPLE_SUMS;
     // A delta segment visits the change grid, a fresh one the records'. With per-sample sums
     // each sample chooses (sample_grid), and its sum so far waits in its entry between
     // rounds.
-    let segment_grid = select(GRID_RECORDS, GRID_CHANGES, id != entry);
+    let segment_grid = select(GRID_RECORDS, GRID_CHANGES, delta_entry);
     let pixel = id / photon.segments;
     let dir = pixel_ray(pixel);
     let out_dir = -dir;
@@ -471,7 +476,7 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
     // within the budget whatever the nesting.
     var used = 0u;
     var listed = entry;
-    if (cached && id != entry) {
+    if (cached && delta_entry) {
         // A segment whose opacity did not change, with the update's changes in its samples'
         // sums (sums_applied): its kept weights are its samples' as they stand.
         if (photon.sums_applied != 0u) {
@@ -482,7 +487,12 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
         // Gathered as any other (a later round too).
         listed = id;
     }
-    var st = gather_state[id];
+    var st: GatherState;
+    if ((entry & FRESH_SEGMENT) != 0u) {
+        st = gather_start(first_lattice_index(hit, bounds.x, jitter));
+    } else {
+        st = gather_state[id];
+    }
     // The current sample (recomputed when resuming inside one): position, extinction, the
     // factor its photons' terms start with, its kept sum's entry, the grid it visits, and the
     // sum its terms join (the segment's, or with per-sample sums the sample's).
