@@ -143,7 +143,6 @@ fn gather_mark_stale(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num
     if (hit.x >= hit.y) {
         return;
     }
-    let jitter = pixel_jitter(pixel);
     var listed = false;
     for (var s = 0u; s < photon.segments; s++) {
         let id = first + s;

@@ -336,12 +336,6 @@ fn trace_mark(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
     }
 }
 
-// The bin of record r's collision: its data value recomputed from its position, the very
-// point the tracker classified.
-fn collision_bit(r: PhotonRecord) -> vec2<u32> {
-    return hist_bit(data_at(r.position));
-}
-
 // Opacity at v for delta tracking, interpolated as a weighted sum rather than mix's
 // a + f·(b − a): each term rounds monotonically, so where an edit lowers LUT entries the
 // result cannot rise, and a rejected tentative collision stays rejected (what the collision
@@ -419,7 +413,10 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
                 }
                 let slot = cursor_slot(p, head, &cursor);
                 let r = records[slot];
-                let bit = collision_bit(r);
+                // The data value of the record's collision, recomputed from its position: the
+                // very point the tracker classified.
+                let value = data_at(r.position);
+                let bit = hist_bit(value);
                 let opacity_fell_here = hist_hits_collision_query(bit.x, bit.y) && hist_hits_opacity_query(bit.x, bit.y);
                 if (hist_hits_rejection_query(r.hist_lo, r.hist_hi)) {
                     break;
@@ -446,7 +443,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
                     var rng = rng_new(scene.seed, p, 0u);
                     power_before = emit(&rng).power;
                 }
-                let power = roulette_carry(power_before, u32(j)) * classify(data_at(r.position)).rgb;
+                let power = roulette_carry(power_before, u32(j)) * classify(value).rgb;
                 store_power(slot, r, power);
                 power_before = power;
                 j += 1;
