@@ -275,7 +275,8 @@ const CHANGE_REPLACE: u32 = 2u;
 const DELTA_SEGMENT: u32 = 0x80000000u;
 // A gather_list entry with this bit starts its segment's gather from its first lattice index
 // (gather_start) instead of its gather_state, which the lister did not write: most segments an
-// opacity edit lists are marched from the sums (remarch_from_sums) and never gathered.
+// opacity edit lists are marched from the sums (remarch_from_sums) and never gathered. Segment
+// ids stay below this bit: the segments buffer (48 bytes each) fits one storage binding.
 const FRESH_SEGMENT: u32 = 0x40000000u;
 const SPATIAL_NONE: u32 = 0u;
 const SPATIAL_AXES: u32 = 1u;
