@@ -1399,12 +1399,18 @@ impl Photon {
 
     /// Sets one counter word before the next submission.
     fn write_counter(&self, engine: &Engine, word: usize, value: u32) {
+        self.write_counters(engine, word, bytemuck::bytes_of(&value));
+    }
+
+    /// Writes `bytes` into the counters from `word` on, before the next submission; a kept
+    /// read of them (`counters_read`) is then stale.
+    fn write_counters(&self, engine: &Engine, word: usize, bytes: &[u8]) {
         self.epoch.set(self.epoch.get() + 1);
         let offset = word as u64 * 4;
         engine
             .gpu
             .queue
-            .write_buffer(&self.buffers.counters, offset, bytemuck::bytes_of(&value));
+            .write_buffer(&self.buffers.counters, offset, bytes);
     }
 
     /// Record slots in the map (`path_slots` per path, filled or not).
@@ -2200,12 +2206,7 @@ impl Photon {
             // gathered again; the full recompute is that work without the checks.
             return self.update_by_recompute(engine, scene);
         }
-        self.epoch.set(self.epoch.get() + 1);
-        engine.gpu.queue.write_buffer(
-            &self.buffers.counters,
-            0,
-            &vec![0u8; self.budget.counter_bytes as usize],
-        );
+        self.write_counters(engine, 0, &vec![0u8; self.budget.counter_bytes as usize]);
         self.marks.set(None);
         self.write_scene(engine, scene)?;
         let listed = self.list_retraced(engine, scene, paths, query)?;
