@@ -263,9 +263,11 @@ const COUNTER_TOUCH: u32 = 15u;
 const COUNTER_RECOLOURED: u32 = 16u;
 // Opacity-stale segments whose last march ended at its cut-off (Segment::cut_off).
 const COUNTER_CUT: u32 = 17u;
+// Listed paths the walk (photon/trace.wgsl, TRACE_WALK) left to the update's trace.
+const COUNTER_DEFERRED: u32 = 18u;
 // Dirty-cell bits follow the counters (8 per hash cell), then one bit per pixel that an
 // update changed a segment of (mark_pixel_changed).
-const COUNTER_DIRTY: u32 = 18u;
+const COUNTER_DIRTY: u32 = 19u;
 const GRID_RECORDS: u32 = 0u;
 const GRID_CHANGES: u32 = 1u;
 const CHANGE_ADD: u32 = 0u;

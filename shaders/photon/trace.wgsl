@@ -30,6 +30,18 @@
 // the update for the census.
 override TRACE_UPDATE: bool = false;
 
+// With TRACE_UPDATE, whether this pipeline is the update's walk (`trace_walk`): it runs first
+// on every listed path and finishes those that only take new colours, where each flight the
+// edit could move (its collision's opacity fell) still collides where it did: its acceptance
+// draw, tested against the new opacity, decides that without tracking, and the record keeps
+// its place and takes the colour the walk gives it (the same operations as the resumed flight,
+// so the same bits). Every other path it lists for the update's trace (COUNTER_DEFERRED), which
+// walks it again from its start: the powers the walk already gave are found unchanged. llvmpipe
+// runs a kernel's code for every SIMD batch, masked, whatever its lanes need (the update's trace
+// over chest CT's 3 851 listed paths cost ~0.7 ms with every lane returning at once), so the
+// paths that need only the walk are kept out of the trace's batches.
+override TRACE_WALK: bool = false;
+
 // Whether this pipeline updates a map (MODE_UPDATE); `main` and what it calls ask this.
 fn updating() -> bool {
     return TRACE_UPDATE;
@@ -354,8 +366,10 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         return;
     }
     var p = photon.path_offset + i;
-    if (updating()) {
+    if (TRACE_WALK) {
         p = retrace_list[i];
+    } else if (updating()) {
+        p = retrace_list[photon.path_count + i];
     }
     let bounces = photon.bounces;
     // The path's chunk list: a full trace takes chunks afresh; an update keeps the ones the
@@ -421,7 +435,16 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
                 if (hist_hits_rejection_query(r.hist_lo, r.hist_hi)) {
                     break;
                 }
-                if (opacity_fell_here) {
+                if (opacity_fell_here && TRACE_WALK) {
+                    // The resumed flight's first draw gives the old collision's t again, its
+                    // second the acceptance there (below).
+                    var rng = rng_new(scene.seed, p, u32(j));
+                    rng.dim = record_resumes[slot].draws + 1u;
+                    if (rng_next(&rng) * photon.majorant >= tracking_opacity(value) * scene.density_scale) {
+                        defer_trace(p);
+                        return;
+                    }
+                } else if (opacity_fell_here) {
                     // No tentative point of this flight met a bin whose opacity rose, so every
                     // one before the collision stays rejected (tracking_opacity cannot rise
                     // where the LUT fell): the flight resumes at the collision (`resume`).
@@ -444,11 +467,18 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
                     power_before = emit(&rng).power;
                 }
                 let power = roulette_carry(power_before, u32(j)) * classify(value).rgb;
+                // The trace goes on after a record only while its power is not all zero.
+                let ends_here_differently = all(power <= vec3<f32>(0.0)) != all(r.power <= vec3<f32>(0.0));
+                if (TRACE_WALK && ends_here_differently) {
+                    // Left to the trace before its power is stored: the trace's walk finds this
+                    // record's old power, and so that the path ends differently here.
+                    defer_trace(p);
+                    return;
+                }
                 store_power(slot, r, power);
                 power_before = power;
                 j += 1;
-                // The trace goes on after a record only while its power is not all zero.
-                if (all(power <= vec3<f32>(0.0)) != all(r.power <= vec3<f32>(0.0))) {
+                if (ends_here_differently) {
                     ends_differently = true;
                     break;
                 }
@@ -459,6 +489,10 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
             let escape_may_collide = old_count < bounces && hist_hits_rejection_query(old_end.x, old_end.y);
             if (recolour && j == i32(old_count) && !ends_differently && !escape_may_collide) {
                 atomicAdd(&counters[COUNTER_RECOLOURED], 1u);
+                return;
+            }
+            if (TRACE_WALK) {
+                defer_trace(p);
                 return;
             }
         }
@@ -623,6 +657,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     }
     paths[p] = PhotonPath(count, hist.x, hist.y, collisions.x, collisions.y, head, 0u, 0u);
     path_query_store(p, hist, collisions);
+}
+
+// TRACE_WALK: leaves path p to the update's trace (`main`), in the retrace list's second half.
+fn defer_trace(p: u32) {
+    retrace_list[photon.path_count + atomicAdd(&counters[COUNTER_DEFERRED], 1u)] = p;
 }
 
 // Whether interaction k (k >= 1: a scattering) plays Russian roulette first (PhotonUniforms).

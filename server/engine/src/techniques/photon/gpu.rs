@@ -169,8 +169,8 @@ pub const EMIT_ENVIRONMENT: u32 = 2;
 /// listed segments (2), change-list entries, segments updated from the changes alone, delta
 /// scatter slots taken, delta scatter overflows, whether the scatter's marks stand for the
 /// dirty cells, listed paths only recoloured, opacity-stale segments whose march ended at its
-/// cut-off; the dirty-cell bits follow.
-pub const COUNTER_WORDS: usize = 18;
+/// cut-off, listed paths the walk left to the trace; the dirty-cell bits follow.
+pub const COUNTER_WORDS: usize = 19;
 pub const COUNTER_RETRACED: usize = 0;
 pub const COUNTER_CHANGED: usize = 1;
 pub const COUNTER_SEGMENTS: usize = 2;
@@ -184,6 +184,7 @@ pub const COUNTER_SCATTER_OVERFLOW: usize = 14;
 pub const COUNTER_TOUCH: usize = 15;
 pub const COUNTER_RECOLOURED: usize = 16;
 pub const COUNTER_CUT: usize = 17;
+pub const COUNTER_DEFERRED: usize = 18;
 /// Words per kept sample sum (`SAMPLE_WORDS`: lo and hi words of three channels, generation,
 /// weight).
 pub const SAMPLE_WORDS: usize = 8;
@@ -233,6 +234,8 @@ pub struct PhotonPass {
     pub trace: wgpu::ComputePipeline,
     /// `trace` compiled for updates (TRACE_UPDATE).
     pub trace_update: wgpu::ComputePipeline,
+    /// The update's walk (TRACE_UPDATE and TRACE_WALK), before `trace_update`.
+    pub trace_walk: wgpu::ComputePipeline,
     pub trace_mark_changes: wgpu::ComputePipeline,
     pub grid_clear: wgpu::ComputePipeline,
     pub grid_count: wgpu::ComputePipeline,
@@ -310,6 +313,13 @@ impl PhotonPass {
                 &trace,
                 "main",
                 &[("TRACE_UPDATE", 1.0)],
+            ),
+            trace_walk: layout.specialized_pipeline(
+                gpu,
+                "photon trace walk",
+                &trace,
+                "main",
+                &[("TRACE_UPDATE", 1.0), ("TRACE_WALK", 1.0)],
             ),
             trace_mark_changes: pipeline("photon trace mark changes", &trace, "trace_mark_changes"),
             grid_clear: pipeline("photon grid clear", &grid, "grid_clear"),

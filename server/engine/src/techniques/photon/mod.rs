@@ -43,13 +43,13 @@ use crate::gpu::TfTexture;
 use crate::scene_gpu::{SceneUniforms, default_step};
 use crate::technique::{StepReport, Technique, TechniqueStats};
 use crate::techniques::photon::gpu::{
-    COUNTER_CHANGED, COUNTER_CHANGES, COUNTER_CUT, COUNTER_DELTA, COUNTER_LIST, COUNTER_RECOLOURED,
-    COUNTER_RETRACED, COUNTER_SCATTER, COUNTER_SCATTER_OVERFLOW, COUNTER_SEGMENTS, COUNTER_SPATIAL,
-    COUNTER_TOUCH, COUNTER_WORDS, EMIT_DIRECTIONAL, EMIT_ENVIRONMENT, EMIT_POINT, GRID_CHANGES,
-    GRID_RECORDS, GatherState, MODE_FULL, MODE_UPDATE, PASS_KERNEL_ENTRIES, PhotonBindings,
-    PhotonChange, PhotonEmitter, PhotonPass, PhotonPath, PhotonRecord, PhotonUniforms,
-    RecordResume, SAMPLE_WORDS, SLOT_WORDS, SPATIAL_AXES, SPATIAL_CELLS, SPATIAL_NONE, Segment,
-    WORKGROUP, dispatch_groups, dispatch_linear,
+    COUNTER_CHANGED, COUNTER_CHANGES, COUNTER_CUT, COUNTER_DEFERRED, COUNTER_DELTA, COUNTER_LIST,
+    COUNTER_RECOLOURED, COUNTER_RETRACED, COUNTER_SCATTER, COUNTER_SCATTER_OVERFLOW,
+    COUNTER_SEGMENTS, COUNTER_SPATIAL, COUNTER_TOUCH, COUNTER_WORDS, EMIT_DIRECTIONAL,
+    EMIT_ENVIRONMENT, EMIT_POINT, GRID_CHANGES, GRID_RECORDS, GatherState, MODE_FULL, MODE_UPDATE,
+    PASS_KERNEL_ENTRIES, PhotonBindings, PhotonChange, PhotonEmitter, PhotonPass, PhotonPath,
+    PhotonRecord, PhotonUniforms, RecordResume, SAMPLE_WORDS, SLOT_WORDS, SPATIAL_AXES,
+    SPATIAL_CELLS, SPATIAL_NONE, Segment, WORKGROUP, dispatch_groups, dispatch_linear,
 };
 use crate::tf::{
     bake, collision_query_historygram, opacity_query_historygram, opacity_rise_historygram,
@@ -616,7 +616,8 @@ pub struct PhotonBudget {
     pub gather_list_bytes: u64,
     /// Where each unfinished segment's gather stands between rounds.
     pub gather_state_bytes: u64,
-    /// The paths an update retraces (indices), compacted by `trace_mark`.
+    /// The paths an update retraces (indices), compacted by `trace_mark`; in the second half,
+    /// those the walk left to the trace.
     pub retrace_list_bytes: u64,
     /// Entries of the change list.
     pub change_entries: u64,
@@ -747,7 +748,7 @@ impl PhotonBudget {
         // Two halves: a round's input and the segments left for the next.
         let gather_list_bytes = 2 * pixels * params.segments as u64 * 4;
         let gather_state_bytes = pixels * params.segments as u64 * size_of::<GatherState>() as u64;
-        let retrace_list_bytes = paths * 4;
+        let retrace_list_bytes = 2 * paths * 4;
         let segment_count = pixels * params.segments as u64;
         // A segment spans at most the box diagonal / Vn; its first lattice index is one early,
         // and rounding may add one more at each end.
@@ -1463,6 +1464,32 @@ impl Photon {
             ("photon trace", &engine.photon.trace)
         };
         self.submit_linear(engine, label, pipeline, count);
+    }
+
+    /// An update's retrace of the `listed` paths: the walk finishes those that only take new
+    /// colours (photon/trace.wgsl, TRACE_WALK), then the trace takes the rest (one blocking
+    /// read between, for their number).
+    fn retrace(
+        &self,
+        engine: &Engine,
+        scene: &Scene,
+        listed: u32,
+        query: Query,
+    ) -> Result<(), EngineError> {
+        if listed == 0 {
+            return Ok(());
+        }
+        let dispatch = Dispatch {
+            mode: MODE_UPDATE,
+            trace_paths: 0..listed,
+            ..Dispatch::default()
+        };
+        self.write_uniforms(engine, scene, query, dispatch);
+        let walk = &engine.photon.trace_walk;
+        self.submit_linear(engine, "photon trace walk", walk, listed);
+        let deferred = self.counter(engine, COUNTER_DEFERRED)?;
+        self.trace(engine, scene, MODE_UPDATE, 0, deferred, query);
+        Ok(())
     }
 
     /// Whether a pass's paths needed more chunks than its pool holds since its last full trace
@@ -2210,7 +2237,7 @@ impl Photon {
         self.marks.set(None);
         self.write_scene(engine, scene)?;
         let listed = self.list_retraced(engine, scene, paths, query)?;
-        self.trace(engine, scene, MODE_UPDATE, 0, listed, query);
+        self.retrace(engine, scene, listed, query)?;
         if self.chunks_exhausted(engine)? {
             // A retraced path grew past what its pass's pool had left and was cut short, which
             // a full recompute (taking every chunk afresh) would not do.
