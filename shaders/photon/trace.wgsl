@@ -365,11 +365,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     if (i >= photon.dispatch_paths) {
         return;
     }
+    // An update's paths are listed, from path_offset: trace_mark's list for the walk, the
+    // walk's (or, where the host skips the walk, trace_mark's) for the trace.
     var p = photon.path_offset + i;
-    if (TRACE_WALK) {
-        p = retrace_list[i];
-    } else if (updating()) {
-        p = retrace_list[photon.path_count + i];
+    if (updating()) {
+        p = retrace_list[photon.path_offset + i];
     }
     let bounces = photon.bounces;
     // The path's chunk list: a full trace takes chunks afresh; an update keeps the ones the

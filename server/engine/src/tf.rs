@@ -121,6 +121,14 @@ pub fn collision_query_historygram(old: &TransferFunction, new: &TransferFunctio
     changed_bins(old, new, |x, y| y[3] < x[3] || x[..3] != y[..3])
 }
 
+/// The bins where the shaders can find a non-zero opacity under `tf` (an entry they
+/// interpolate at some value of the bin is not transparent): delta tracking collides only
+/// there.
+pub fn opaque_bins(tf: &TransferFunction) -> u64 {
+    let transparent = TransferFunction { points: Vec::new() };
+    changed_bins(&transparent, tf, |_, y| y[3] > 0.0)
+}
+
 /// Bins whose LUT entries `differ` between the two tables.
 fn changed_bins(
     old: &TransferFunction,
@@ -153,6 +161,25 @@ mod tests {
             color,
             opacity,
         }
+    }
+
+    #[test]
+    fn opaque_bins_are_those_an_opaque_entry_reaches() {
+        let tf = TransferFunction {
+            points: vec![
+                point(0.0, [1.0; 3], 0.0),
+                point(0.5, [1.0; 3], 0.0),
+                point(0.75, [1.0; 3], 1.0),
+                point(1.0, [1.0; 3], 1.0),
+            ],
+        };
+        let bins = opaque_bins(&tf);
+        // Entries above 0.5 are opaque; the shaders interpolate the last transparent entry
+        // with the first opaque one, so the bin of 0.5 counts and those well below do not.
+        assert_ne!(bins & (1 << value_bin(0.5)), 0);
+        assert_ne!(bins & (1 << value_bin(0.9)), 0);
+        assert_eq!(bins & ((1 << value_bin(0.45)) | 1), 0);
+        assert_eq!(opaque_bins(&TransferFunction { points: Vec::new() }), 0);
     }
 
     #[test]

@@ -53,7 +53,7 @@ use crate::techniques::photon::gpu::{
 };
 use crate::tf::{
     bake, collision_query_historygram, opacity_query_historygram, opacity_rise_historygram,
-    query_historygram,
+    opaque_bins, query_historygram,
 };
 use crate::{Change, Engine, EngineError, GpuVolume, Scene};
 pub use census::{Census, WorkBound};
@@ -1468,7 +1468,9 @@ impl Photon {
 
     /// An update's retrace of the `listed` paths: the walk finishes those that only take new
     /// colours (photon/trace.wgsl, TRACE_WALK), then the trace takes the rest (one blocking
-    /// read between, for their number).
+    /// read between, for their number). Where the new TF is transparent in every bin of the
+    /// collision query, every listed path's first changed collision is now rejected (or its
+    /// flight met a bin whose opacity rose): the walk would finish none, and is skipped.
     fn retrace(
         &self,
         engine: &Engine,
@@ -1477,6 +1479,10 @@ impl Photon {
         query: Query,
     ) -> Result<(), EngineError> {
         if listed == 0 {
+            return Ok(());
+        }
+        if query.collision & opaque_bins(&scene.tf) == 0 {
+            self.trace(engine, scene, MODE_UPDATE, 0, listed, query);
             return Ok(());
         }
         let dispatch = Dispatch {
@@ -1488,7 +1494,9 @@ impl Photon {
         let walk = &engine.photon.trace_walk;
         self.submit_linear(engine, "photon trace walk", walk, listed);
         let deferred = self.counter(engine, COUNTER_DEFERRED)?;
-        self.trace(engine, scene, MODE_UPDATE, 0, deferred, query);
+        // In the list's second half (defer_trace), from the map's path count.
+        let paths = self.passes * self.params.photons_per_pass;
+        self.trace(engine, scene, MODE_UPDATE, paths, deferred, query);
         Ok(())
     }
 
