@@ -359,6 +359,13 @@ fn tracking_opacity(v: f32) -> f32 {
     return tf_entry(i).a * (1.0 - f) + tf_entry(i + 1u).a * f;
 }
 
+// Whether delta tracking takes a tentative point of data value v, with acceptance draw
+// `accept`, as a real collision. The update's walk (TRACE_WALK) asks it of an old collision
+// under the new TF: the very test the tracking loop would make there.
+fn tracking_accepts(accept: f32, v: f32) -> bool {
+    return accept * photon.majorant < tracking_opacity(v) * scene.density_scale;
+}
+
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let i = linear_index(gid, groups);
@@ -440,7 +447,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
                     // second the acceptance there (below).
                     var rng = rng_new(scene.seed, p, u32(j));
                     rng.dim = record_resumes[slot].draws + 1u;
-                    if (rng_next(&rng) * photon.majorant >= tracking_opacity(value) * scene.density_scale) {
+                    if (!tracking_accepts(rng_next(&rng), value)) {
                         defer_trace(p);
                         return;
                     }
@@ -572,7 +579,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
                 let accept = rng_next(&rng);
                 let v = data_at(x);
                 hist |= hist_bit(v);
-                if (accept * photon.majorant < tracking_opacity(v) * scene.density_scale) {
+                if (tracking_accepts(accept, v)) {
                     collided = true;
                     albedo = classify(v).rgb;
                     position = x;
